@@ -1,0 +1,34 @@
+# Two commands on a fresh machine: `make demo` and `make test`.
+# Both create .venv, install the package (compiling the Rust core) and run.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+export VIRTUAL_ENV := $(abspath $(VENV))
+export PATH := $(abspath $(BIN)):$(PATH)
+
+.PHONY: demo test build bench wheel clean
+
+$(BIN)/maturin:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet "maturin>=1.8,<2"
+
+build: $(BIN)/maturin
+	$(BIN)/maturin develop --release --quiet --extras test
+
+demo: build
+	$(BIN)/edgepose demo
+
+test: build
+	cargo test --workspace
+	$(BIN)/python -m pytest -q
+
+bench: build
+	cargo bench --workspace
+	$(BIN)/python benches/bench_maps.py
+
+wheel: $(BIN)/maturin
+	$(BIN)/maturin build --release --out dist
+
+clean:
+	rm -rf $(VENV) target dist

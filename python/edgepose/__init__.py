@@ -1,0 +1,33 @@
+"""edgepose: 6D pose of unseen objects from a depth point cloud, on a CPU.
+
+Units are metres; camera frames follow OpenCV (x right, y down, z forward);
+poses are ``T_cam_obj`` (``p_cam = R @ p_obj + t``).
+"""
+
+from __future__ import annotations
+
+from edgepose._core import __version__
+from edgepose.errors import EdgePoseError, InvalidCloudError, InvalidModelError, MeshLoadError
+from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
+from edgepose.model import StandardModel, detect_scale, load_model, model_from_points
+from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
+
+__all__ = [
+    "__version__",
+    "EdgePoseError",
+    "InvalidCloudError",
+    "InvalidModelError",
+    "MeshLoadError",
+    "Maps",
+    "StandardModel",
+    "Viewpoints",
+    "compute_maps",
+    "detect_scale",
+    "farthest_point_sample",
+    "fibonacci_viewpoints",
+    "load_model",
+    "model_from_points",
+    "normalize_to_map",
+    "view_rotation",
+    "visible_mask",
+]

@@ -1,0 +1,159 @@
+"""The standard model: an object's surface as evenly spread points with
+outward normals, centred, with its scale to the unit sphere.
+
+Units are metres. Mesh files in millimetres are detected from their size
+(see :func:`detect_scale`) or converted with an explicit ``scale``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+
+from edgepose import _core
+from edgepose.errors import InvalidModelError, MeshLoadError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MODEL_POINTS = 4096
+#: Largest extent (in file units) still read as metres; larger means millimetres.
+#: A robot handles objects well under 3 m, and mm models of them exceed 3 units.
+METRES_MAX_EXTENT = 3.0
+
+MeshSource = Union[str, os.PathLike, "trimesh.Trimesh"]  # noqa: F821
+
+
+@dataclass(frozen=True)
+class StandardModel:
+    """An object's surface samples in the model frame.
+
+    The model frame is the original mesh frame shifted by ``centre``:
+    ``p_mesh = p_model + centre``. Poses (``T_cam_obj``) refer to the
+    original mesh frame.
+    """
+
+    points: np.ndarray
+    """(N, 3) float32 surface points, metres, model frame."""
+    normals: np.ndarray
+    """(N, 3) float32 unit outward normals, model frame."""
+    centre: np.ndarray
+    """(3,) float64 model-frame origin in the original mesh frame, metres."""
+    scale: float
+    """``1 / max‖p‖``: multiplies model-frame metres into the unit sphere."""
+    diameter: float
+    """Largest distance between two model points, metres."""
+    spacing: float
+    """Mean nearest-neighbour distance between model points, metres."""
+
+    @property
+    def radius(self) -> float:
+        """Distance from the centre to the farthest model point, metres."""
+        return 1.0 / self.scale
+
+
+def detect_scale(extent: float) -> float:
+    """Factor from file units to metres, guessed from the largest bounding-box
+    extent: 1.0 for metres, 0.001 when the mesh looks like millimetres."""
+    return 0.001 if extent > METRES_MAX_EXTENT else 1.0
+
+
+def load_model(
+    source: MeshSource,
+    *,
+    n_points: int = DEFAULT_MODEL_POINTS,
+    scale: float | None = None,
+    seed: int = 0,
+) -> StandardModel:
+    """Standard model of a mesh file (obj, ply, stl, glb, off, …) or a
+    ``trimesh.Trimesh``.
+
+    ``scale`` multiplies file units into metres; when ``None`` it is detected
+    (millimetre files are recognised by size and converted, with a log line).
+    """
+    import trimesh
+
+    mesh = source if isinstance(source, trimesh.Trimesh) else _read_mesh(source)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces)
+    if len(vertices) == 0 or len(faces) == 0:
+        raise MeshLoadError(f"{_name(source)}: mesh has no triangles")
+    if not np.isfinite(vertices).all():
+        raise MeshLoadError(f"{_name(source)}: mesh vertices contain NaN or infinite values")
+    extent = float(np.ptp(vertices, axis=0).max())
+    if scale is None:
+        scale = detect_scale(extent)
+        if scale != 1.0:
+            log.info("%s: extent %.1f units, read as millimetres", _name(source), extent)
+    if not (np.isfinite(scale) and scale > 0):
+        raise InvalidModelError(f"scale must be a positive number, got {scale}")
+    vertices = vertices * scale
+    faces = np.ascontiguousarray(faces, dtype=np.uint32)
+    try:
+        fields = _core.standard_model_from_mesh(vertices, faces, n_points, seed)
+    except ValueError as e:
+        raise InvalidModelError(f"{_name(source)}: {e}") from None
+    return StandardModel(*fields)
+
+
+def model_from_points(
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    n_points: int = DEFAULT_MODEL_POINTS,
+) -> StandardModel:
+    """Standard model of an object given as surface points (metres, (N, 3))
+    with normals ((N, 3), any length, pointing outward or all inward).
+    Thinned to ``n_points`` by farthest-point sampling when larger."""
+    points = _as_triples(points, "points")
+    normals = _as_triples(normals, "normals")
+    try:
+        fields = _core.standard_model_from_points(points, normals, n_points)
+    except ValueError as e:
+        raise InvalidModelError(str(e)) from None
+    return StandardModel(*fields)
+
+
+def _read_mesh(path: str | os.PathLike) -> "trimesh.Trimesh":  # noqa: F821
+    """Triangles of every geometry in a mesh file, in the file's frame.
+
+    Geometry only: materials and textures are ignored (so no image library is
+    needed), and multi-part files (glb scenes) are merged with their node
+    transforms applied."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshLoadError(f"{path}: no such file")
+    try:
+        scene = trimesh.load_scene(path)
+        parts = []
+        for node in scene.graph.nodes_geometry:
+            transform, geometry_name = scene.graph[node]
+            geometry = scene.geometry[geometry_name]
+            if isinstance(geometry, trimesh.Trimesh) and len(geometry.faces):
+                vertices = trimesh.transform_points(np.asarray(geometry.vertices), transform)
+                parts.append((vertices, np.asarray(geometry.faces)))
+    except Exception as e:  # trimesh raises many types for bad files
+        raise MeshLoadError(f"{path}: cannot read mesh ({type(e).__name__}: {e})") from None
+    if not parts:
+        raise MeshLoadError(f"{path}: holds no triangle mesh")
+    offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
+    vertices = np.concatenate([v for v, _ in parts])
+    faces = np.concatenate([f + o for (_, f), o in zip(parts, offsets)])
+    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+
+
+def _as_triples(array: np.ndarray, name: str) -> np.ndarray:
+    array = np.asarray(array)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidModelError(f"{name} must have shape (N, 3), got {array.shape}")
+    return np.ascontiguousarray(array, dtype=np.float32)
+
+
+def _name(source: object) -> str:
+    return str(source) if isinstance(source, (str, os.PathLike)) else type(source).__name__

@@ -1,0 +1,40 @@
+"""Viewpoints: directions on a Fibonacci sphere, each with a virtual camera
+(OpenCV: x right, y down, z forward) looking at the object's centre."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from edgepose import _core
+
+DEFAULT_VIEWS = 2100
+
+
+@dataclass(frozen=True)
+class Viewpoints:
+    """Camera directions and their rotations, object frame."""
+
+    directions: np.ndarray
+    """(V, 3) float64 unit vectors from the object's centre towards each camera."""
+    rotations: np.ndarray
+    """(V, 3, 3) float64 rotations object → view frame: ``p_view = R_v @ p_obj``."""
+
+    def __len__(self) -> int:
+        return len(self.directions)
+
+
+def fibonacci_viewpoints(n: int = DEFAULT_VIEWS) -> Viewpoints:
+    """``n`` near-uniform viewpoints; the same ``n`` always gives the same views."""
+    if n < 1:
+        raise ValueError(f"need at least one viewpoint, got {n}")
+    directions, rotations = _core.fibonacci_viewpoints(n)
+    return Viewpoints(directions, rotations)
+
+
+def view_rotation(direction: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation object → view frame of a camera on ``direction`` (object
+    frame, any length) looking at the centre. Image "down" follows the
+    object's −z (−y when looking along z)."""
+    return _core.view_rotation(np.ascontiguousarray(direction, dtype=np.float64))

@@ -1,0 +1,26 @@
+//! Geometry and search core of edgepose.
+//!
+//! Units are metres unless a name says otherwise; frames follow OpenCV
+//! (x right, y down, z forward). Everything here builds and tests without
+//! Python; the pyo3 layer lives in [`python`] behind the `python` feature.
+
+pub mod error;
+pub mod maps;
+pub mod model;
+pub mod rng;
+pub mod sampling;
+pub mod views;
+pub mod visibility;
+
+#[cfg(feature = "python")]
+mod python;
+
+/// A point or vector in 3-D, single precision (clouds and maps).
+pub type Point3 = [f32; 3];
+
+pub use error::GeometryError;
+pub use maps::{compute_maps, normalize_to_map, view_map, Maps, ViewMap};
+pub use model::StandardModel;
+pub use sampling::farthest_point_sample;
+pub use views::{fibonacci_directions, view_rotation, viewpoints, Rotation};
+pub use visibility::visible_mask;
