@@ -6,15 +6,17 @@ BIN := $(VENV)/bin
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: demo test build bench wheel clean
+.PHONY: demo test build bench wheel train clean
 
 $(BIN)/maturin:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet "maturin>=1.8,<2"
 
+# The tests cover training and export too, so they need the `export` extra
+# (torch, CPU use only; a large download the first time).
 build: $(BIN)/maturin
-	$(BIN)/maturin develop --release --quiet --extras test
+	$(BIN)/maturin develop --release --quiet --extras test,export
 
 demo: build
 	$(BIN)/edgepose demo
@@ -26,6 +28,10 @@ test: build
 bench: build
 	cargo bench --workspace
 	$(BIN)/python benches/bench_maps.py
+
+train: build
+	$(BIN)/python -m export.train
+	$(BIN)/python -m export.evaluate
 
 wheel: $(BIN)/maturin
 	$(BIN)/maturin build --release --out dist

@@ -1,0 +1,88 @@
+"""The two shipped networks, run with onnxruntime (no torch at run time).
+
+* ``encode(maps)`` → unit codes (compared by cosine to pick viewpoints) and
+  angular spectra (stored per view in a codebook);
+* ``in_plane_angles(observed, candidates)`` → the turn about the optical axis
+  carrying each candidate map onto the observed one (the IRR head).
+
+The models live in ``edgepose/models/`` with a manifest of their sha256; the
+encoder's hash is the *fingerprint* a codebook records, so codes made by one
+encoder are never compared with another's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from edgepose.errors import EdgePoseError
+
+MODELS_DIR = Path(__file__).resolve().parent / "models"
+
+
+class ModelFilesError(EdgePoseError):
+    """Shipped network files missing, altered, or unreadable."""
+
+
+class Encoder:
+    """onnxruntime sessions of ``encoder.onnx`` and ``irr.onnx``.
+
+    ``threads`` sets onnxruntime's intra-op threads (1 suits a robot sharing
+    its CPU). Sessions are safe to call from several threads at once.
+    """
+
+    def __init__(self, models_dir: Path | str = MODELS_DIR, threads: int = 1) -> None:
+        import onnxruntime as ort
+
+        models_dir = Path(models_dir)
+        try:
+            manifest = json.loads((models_dir / "manifest.json").read_text())
+            blobs = {name: (models_dir / name).read_bytes() for name in ("encoder.onnx", "irr.onnx")}
+        except (OSError, ValueError) as e:
+            raise ModelFilesError(f"cannot read network files in {models_dir}: {e}") from None
+        for name, blob in blobs.items():
+            digest = hashlib.sha256(blob).hexdigest()
+            if digest != manifest["files"].get(name):
+                raise ModelFilesError(f"{models_dir / name}: sha256 {digest[:12]}… differs from its manifest")
+        self.fingerprint: str = manifest["files"]["encoder.onnx"]
+        self.map_points: int = manifest["inputs"]["map_points"]
+        self.code_size: int = manifest["inputs"]["code_size"]
+        self.spectrum_size: int = manifest["inputs"]["spectrum_size"]
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        providers = ["CPUExecutionProvider"]
+        self._encoder = ort.InferenceSession(blobs["encoder.onnx"], options, providers=providers)
+        self._irr = ort.InferenceSession(blobs["irr.onnx"], options, providers=providers)
+
+    def encode(self, maps: np.ndarray, batch: int = 128) -> tuple[np.ndarray, np.ndarray]:
+        """(B, M, 3) maps → codes (B, code_size) unit float32, spectra (B, spectrum_size) float32."""
+        maps = np.ascontiguousarray(maps, dtype=np.float32)
+        if maps.ndim != 3 or maps.shape[1:] != (self.map_points, 3):
+            raise ValueError(f"maps must have shape (B, {self.map_points}, 3), got {maps.shape}")
+        codes, spectra = [], []
+        for start in range(0, len(maps), batch):
+            code, spectrum = self._encoder.run(None, {"maps": maps[start : start + batch]})
+            codes.append(code)
+            spectra.append(spectrum)
+        if not codes:
+            return np.zeros((0, self.code_size), np.float32), np.zeros((0, self.spectrum_size), np.float32)
+        return np.concatenate(codes), np.concatenate(spectra)
+
+    def in_plane_angles(self, observed: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """Angles θ (radians, (K,)) turning each candidate map onto the observed
+        one about the optical axis: ``observed ≈ Rz(θ) · candidate``."""
+        observed = np.ascontiguousarray(observed, dtype=np.float32).reshape(1, self.spectrum_size)
+        candidates = np.ascontiguousarray(candidates, dtype=np.float32).reshape(-1, self.spectrum_size)
+        (cos_sin,) = self._irr.run(None, {"observed": observed, "candidates": candidates})
+        return np.arctan2(cos_sin[:, 1], cos_sin[:, 0])
+
+
+@lru_cache(maxsize=1)
+def default_encoder() -> Encoder:
+    """The shipped networks, loaded once per process."""
+    return Encoder()

@@ -1,0 +1,50 @@
+"""Evaluation toolkit: pose error metrics (ADD, ADD-S, ADD(-S), AUC),
+synthetic depth views with known poses, and BOP results files.
+
+Units are metres; camera frames follow OpenCV (x right, y down, z forward);
+poses are ``T_cam_obj`` (``p_cam = R @ p_obj + t``).
+"""
+
+from __future__ import annotations
+
+from edgepose.eval.bop import BopRow, read_bop_csv, write_bop_csv
+from edgepose.eval.metrics import (
+    YCB_SYMMETRIC,
+    PoseErrors,
+    add,
+    add_or_s,
+    add_s,
+    auc,
+    pose_errors,
+    rotation_error_deg,
+    translation_error_mm,
+)
+from edgepose.eval.render import (
+    LINEMOD_CAMERA,
+    Camera,
+    RenderedView,
+    depth_to_cloud,
+    random_pose,
+    render_view,
+)
+
+__all__ = [
+    "LINEMOD_CAMERA",
+    "YCB_SYMMETRIC",
+    "BopRow",
+    "Camera",
+    "PoseErrors",
+    "RenderedView",
+    "add",
+    "add_or_s",
+    "add_s",
+    "auc",
+    "depth_to_cloud",
+    "pose_errors",
+    "random_pose",
+    "read_bop_csv",
+    "render_view",
+    "rotation_error_deg",
+    "translation_error_mm",
+    "write_bop_csv",
+]

@@ -1,0 +1,177 @@
+"""Pose error metrics: ADD, ADD-S, ADD(-S), rotation and translation errors,
+and the YCB-Video area under the accuracy curve.
+
+Units are metres unless a name says otherwise. Poses are ``T_cam_obj``
+(4, 4): ``p_cam = R @ p_obj + t``; model points are in the object frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: YCB objects judged with ADD-S in ADD(-S) (geometrically symmetric);
+#: banana, mustard_bottle and power_drill are asymmetric and judged with ADD.
+YCB_SYMMETRIC = frozenset({"master_chef_can", "cracker_box"})
+
+#: A pose is correct when its metric is below this fraction of the diameter.
+CORRECT_FRACTION = 0.1
+
+#: Rows of model points compared at once in ADD-S: bounds memory to
+#: ``_CHUNK × N`` float64 distances (20 MB for N = 5,000).
+_CHUNK = 512
+
+
+def add(model_points: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """ADD: mean distance (metres) between each model point under ``T_est``
+    and the same point under ``T_gt``."""
+    points = _points(model_points)
+    est, gt = _transform(T_est, points), _transform(T_gt, points)
+    return float(np.linalg.norm(est - gt, axis=1).mean())
+
+
+def add_s(model_points: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """ADD-S: mean over the model points under ``T_gt`` of the distance
+    (metres) to the closest model point under ``T_est``.
+
+    Brute-force nearest neighbours in chunks of rows; distances are taken in
+    the ground-truth object frame, where coordinates are small, and the
+    chosen neighbour's distance is recomputed exactly."""
+    points = _points(model_points)
+    # Estimated points in the gt object frame: same distances, less cancellation.
+    relative = np.linalg.inv(_pose(T_gt)) @ _pose(T_est)
+    est = _transform(relative, points)
+    est_sq = np.einsum("ij,ij->i", est, est)
+    total = 0.0
+    for start in range(0, len(points), _CHUNK):
+        gt = points[start : start + _CHUNK]
+        sq = est_sq[None, :] - 2.0 * gt @ est.T  # ‖gt‖² is the same for every column
+        nearest = est[np.argmin(sq, axis=1)]
+        total += float(np.linalg.norm(gt - nearest, axis=1).sum())
+    return total / len(points)
+
+
+def add_or_s(model_points: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray, symmetric: bool) -> float:
+    """ADD(-S): ADD-S for a symmetric object, ADD otherwise (metres)."""
+    metric = add_s if symmetric else add
+    return metric(model_points, T_est, T_gt)
+
+
+def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
+    """Geodesic angle (degrees, 0–180) of the rotation taking ``R_gt`` to ``R_est``."""
+    R_est, R_gt = _matrix(R_est, (3, 3), "R_est"), _matrix(R_gt, (3, 3), "R_gt")
+    cos = (np.trace(R_est.T @ R_gt) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def translation_error_mm(t_est: np.ndarray, t_gt: np.ndarray) -> float:
+    """Distance between two translations given in metres, in millimetres."""
+    t_est, t_gt = _matrix(t_est, (3,), "t_est"), _matrix(t_gt, (3,), "t_gt")
+    return float(1000.0 * np.linalg.norm(t_est - t_gt))
+
+
+def auc(errors_m: np.ndarray, max_threshold: float = 0.10) -> float:
+    """Area under the accuracy–threshold curve for thresholds 0 to
+    ``max_threshold`` (metres), normalised to [0, 1].
+
+    YCB-Video convention, exactly as PoseCNN's ``plot_accuracy_keyframe.m``
+    (the figure papers report as "AUC of ADD-S / ADD(-S)", × 100): errors above
+    ``max_threshold`` (and non-finite ones) are failures; the finite errors
+    are sorted into d₁ ≤ … ≤ dₘ with accuracies k/n (n counts every error),
+    and the VOC-style sum Σ (d_k − d_{k−1}) · k/n + (max − dₘ) · m/n is
+    divided by ``max_threshold``. Each gap is credited with the accuracy at
+    its right end, so the result exceeds the exact area under the step curve
+    by dₘ / (n · max) at most (negligible for thousands of poses); within a
+    run of tied errors the first one's accuracy counts, as in the original.
+    """
+    errors = np.asarray(errors_m, dtype=np.float64).ravel()
+    if errors.size == 0:
+        raise ValueError("auc needs at least one error")
+    if not max_threshold > 0:
+        raise ValueError(f"max_threshold must be positive, got {max_threshold}")
+    if np.any(errors < 0):
+        raise ValueError("errors must be non-negative distances")
+    d = np.sort(np.where(errors <= max_threshold, errors, np.inf))  # NaN counts as a failure
+    accuracy = np.arange(1, d.size + 1) / d.size
+    finite = np.isfinite(d)
+    if not finite.any():
+        return 0.0
+    rec, prec = d[finite], accuracy[finite]
+    mrec = np.concatenate([[0.0], rec, [max_threshold]])
+    mpre = np.maximum.accumulate(np.concatenate([[0.0], prec, [prec[-1]]]))
+    steps = np.nonzero(mrec[1:] != mrec[:-1])[0] + 1
+    return float(np.sum((mrec[steps] - mrec[steps - 1]) * mpre[steps]) / max_threshold)
+
+
+@dataclass(frozen=True)
+class PoseErrors:
+    """Every error of one estimated pose against the ground truth."""
+
+    add: float
+    """ADD, metres."""
+    add_s: float
+    """ADD-S, metres."""
+    add_or_s: float
+    """ADD(-S): ADD-S for symmetric objects, ADD otherwise, metres."""
+    rotation_deg: float
+    """Geodesic rotation error, degrees."""
+    translation_mm: float
+    """Translation error, millimetres."""
+    diameter: float
+    """Object diameter, metres: the scale of the correctness threshold."""
+
+    @property
+    def correct_add_s(self) -> bool:
+        """ADD-S below 0.1 × diameter."""
+        return self.add_s < CORRECT_FRACTION * self.diameter
+
+    @property
+    def correct_add_or_s(self) -> bool:
+        """ADD(-S) below 0.1 × diameter."""
+        return self.add_or_s < CORRECT_FRACTION * self.diameter
+
+
+def pose_errors(
+    model_points: np.ndarray,
+    T_est: np.ndarray,
+    T_gt: np.ndarray,
+    diameter: float,
+    symmetric: bool,
+) -> PoseErrors:
+    """All errors of ``T_est`` against ``T_gt`` for an object of ``diameter``
+    metres, sampled by ``model_points`` ((N, 3), object frame, metres)."""
+    T_est, T_gt = _pose(T_est), _pose(T_gt)
+    add_m = add(model_points, T_est, T_gt)
+    add_s_m = add_s(model_points, T_est, T_gt)
+    return PoseErrors(
+        add=add_m,
+        add_s=add_s_m,
+        add_or_s=add_s_m if symmetric else add_m,
+        rotation_deg=rotation_error_deg(T_est[:3, :3], T_gt[:3, :3]),
+        translation_mm=translation_error_mm(T_est[:3, 3], T_gt[:3, 3]),
+        diameter=float(diameter),
+    )
+
+
+def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    T = _pose(T)
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def _points(points: np.ndarray) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"model_points must have shape (N, 3) with N > 0, got {points.shape}")
+    return points
+
+
+def _pose(T: np.ndarray) -> np.ndarray:
+    return _matrix(T, (4, 4), "pose")
+
+
+def _matrix(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
+    array = np.asarray(array, dtype=np.float64)
+    if array.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+    return array
