@@ -1,0 +1,1 @@
+"""Training and ONNX export of edgepose's networks (needs the `export` extra: torch, onnx)."""

@@ -1,0 +1,74 @@
+"""Training and export of the networks (needs the `export` extra: torch, onnx)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+ort = pytest.importorskip("onnxruntime")
+
+from export import data, network, shapes, train  # noqa: E402
+from edgepose.encoder import Encoder  # noqa: E402
+
+
+def turn(maps: torch.Tensor, theta: float) -> torch.Tensor:
+    c, s = math.cos(theta), math.sin(theta)
+    r = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return maps @ r.T
+
+
+def test_code_is_invariant_and_spectrum_turns_with_the_map():
+    torch.manual_seed(0)
+    encoder, irr = network.Encoder().eval(), network.InPlaneRotation().eval()
+    maps = torch.randn(3, network.MAP_POINTS, 3) * 0.4
+    with torch.no_grad():
+        code, spectrum = encoder(maps)
+        for theta in (0.3, 2.0, -2.9):
+            turned_code, turned_spectrum = encoder(turn(maps, theta))
+            assert torch.allclose(code, turned_code, atol=1e-5)
+            # Harmonic m of every channel picks up a phase of m·θ.
+            s = spectrum.reshape(3, network.CHANNELS, network.HARMONICS, 2)
+            t = turned_spectrum.reshape(3, network.CHANNELS, network.HARMONICS, 2)
+            m = torch.arange(1, network.HARMONICS + 1)
+            phase = torch.complex(torch.cos(m * theta), torch.sin(m * theta))
+            expected = torch.view_as_complex(s.contiguous()) * phase
+            assert torch.allclose(torch.view_as_complex(t.contiguous()), expected, atol=1e-5)
+            # Even untrained, phase correlation finds an exact turn.
+            cos_sin = irr(turned_spectrum, spectrum)
+            found = torch.atan2(cos_sin[:, 1], cos_sin[:, 0])
+            assert torch.allclose(found, torch.full_like(found, theta), atol=math.radians(0.5))
+
+
+def test_training_pairs_carry_the_true_in_plane_angle():
+    models = shapes.build_models(0, seed=0, limit=2)
+    batch = data.sample_batch(models, np.random.default_rng(0), shapes=2, views_per_shape=3)
+    assert batch.observed.shape == batch.codebook.shape == (6, 512, 3)
+    assert np.all(np.abs(batch.angles) <= np.pi)
+    # The observed map, turned back by the angle, lines up with the codebook map.
+    for obs, book, theta in zip(batch.observed, batch.codebook, batch.angles):
+        back = obs @ data.rot_z(-theta).T
+        err_back = np.mean(np.min(np.linalg.norm(back[:, None] - book[None], axis=2), axis=1))
+        err_raw = np.mean(np.min(np.linalg.norm(obs[:, None] - book[None], axis=2), axis=1))
+        assert err_back < 0.08
+        assert err_back <= err_raw + 1e-6
+
+
+def test_tiny_training_exports_onnx_that_matches_torch(tmp_path):
+    out = tmp_path / "models"
+    assert train.main(["--tiny", "--out", str(out), "--cache", str(tmp_path / "cache")]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["parameters"]["total"] <= 1_000_000
+    assert set(manifest["files"]) == {"encoder.onnx", "irr.onnx"}
+    assert not list(out.glob("*.data")), "ONNX files must be self-contained"
+    # The runtime wrapper loads them, checks hashes and gives unit codes.
+    encoder = Encoder(out)
+    maps = np.random.default_rng(0).normal(size=(5, 512, 3)).astype(np.float32) * 0.4
+    codes, spectra = encoder.encode(maps, batch=2)
+    assert codes.shape == (5, 64) and spectra.shape == (5, network.SPECTRUM_SIZE)
+    np.testing.assert_allclose(np.linalg.norm(codes, axis=1), 1.0, atol=1e-5)
+    # Resuming from the checkpoint continues rather than restarting.
+    assert train.main(["--tiny", "--resume", "--out", str(out), "--cache", str(tmp_path / "cache")]) == 0
