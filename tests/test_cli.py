@@ -24,11 +24,12 @@ def test_version_proves_the_core_loads():
     assert "compiled core loaded" in out.stdout
 
 
-def test_demo_prints_model_and_map_statistics(ycb_dir):
-    out = run("demo", "--mesh", str(ycb_dir / "banana.ply"), "--views", "300")
+def test_demo_estimates_a_rendered_pose(ycb_dir):
+    out = run("demo", "--mesh", str(ycb_dir / "banana.ply"), "--seed", "1")
     assert out.returncode == 0, out.stderr
-    assert "4096 points" in out.stdout
-    assert "300 × 512 points" in out.stdout
+    assert "codebook    2100 views" in out.stdout
+    assert "estimated   T_cam_obj" in out.stdout and "true        T_cam_obj" in out.stdout
+    assert "(correct at 0.1 × diameter" in out.stdout
 
 
 def test_demo_reports_a_missing_mesh_clearly(tmp_path):

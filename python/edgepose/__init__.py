@@ -7,14 +7,26 @@ poses are ``T_cam_obj`` (``p_cam = R @ p_obj + t``).
 from __future__ import annotations
 
 from edgepose._core import __version__
+from edgepose.cloud import cloud_from_depth
+from edgepose.codebook import Codebook, CodebookError, build_codebook
+from edgepose.encoder import Encoder, ModelFilesError
 from edgepose.errors import EdgePoseError, InvalidCloudError, InvalidModelError, MeshLoadError
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
+from edgepose.pose import Pose, estimate
 from edgepose.model import StandardModel, detect_scale, load_model, model_from_points
 from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
 
 __all__ = [
     "__version__",
+    "Codebook",
+    "CodebookError",
     "EdgePoseError",
+    "Encoder",
+    "ModelFilesError",
+    "Pose",
+    "build_codebook",
+    "cloud_from_depth",
+    "estimate",
     "InvalidCloudError",
     "InvalidModelError",
     "MeshLoadError",

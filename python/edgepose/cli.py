@@ -2,7 +2,8 @@
 
 Examples::
 
-    edgepose demo                                   # example object, map statistics
+    edgepose demo                                   # codebook + pose of the example object
+    edgepose demo --seed 3                          # another random pose
     edgepose demo --mesh my_part.stl --scale 0.001  # your own mesh (mm → m)
     edgepose --version
 """
@@ -16,7 +17,7 @@ from pathlib import Path
 
 #: The example object the demo uses when no mesh is given: a YCB mesh from the
 #: shared benchmark data (CC BY 4.0), found beside the project checkout.
-EXAMPLE_MESH = Path("..") / "shared" / "data" / "ycb" / "mustard_bottle.ply"
+EXAMPLE_MESH = Path("..") / "shared" / "data" / "ycb" / "power_drill.ply"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,11 +29,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--version", action="store_true", help="print versions (proves the compiled core loads)")
     commands = parser.add_subparsers(dest="command")
-    demo = commands.add_parser("demo", help="build the standard model and all view maps of an object")
+    demo = commands.add_parser("demo", help="build a codebook, render the object at a random pose, estimate it")
     demo.add_argument("--mesh", type=Path, default=EXAMPLE_MESH, help=f"mesh file (default: {EXAMPLE_MESH})")
     demo.add_argument("--scale", type=float, default=None, help="file units → metres (default: detect)")
     demo.add_argument("--views", type=int, default=2100, help="number of viewpoints (default: 2100)")
-    demo.add_argument("--map-points", type=int, default=512, help="points per map (default: 512)")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the rendered view (default: 0)")
     args = parser.parse_args(argv)
 
     if args.version:
@@ -41,43 +42,50 @@ def main(argv: list[str] | None = None) -> int:
         print(f"edgepose {edgepose.__version__} (compiled core loaded)")
         return 0
     if args.command == "demo":
-        return _demo(args.mesh, args.scale, args.views, args.map_points)
+        return _demo(args.mesh, args.scale, args.views, args.seed)
     parser.print_help()
     return 2
 
 
-def _demo(mesh: Path, scale: float | None, views: int, map_points: int) -> int:
+def _demo(mesh_path: Path, scale: float | None, views: int, seed: int) -> int:
     import numpy as np
 
     import edgepose
+    from edgepose.eval import pose_errors, render_view
+    from edgepose.model import _read_mesh, detect_scale
 
     try:
-        t0 = time.perf_counter()
-        model = edgepose.load_model(mesh, scale=scale)
-        t1 = time.perf_counter()
+        mesh = _read_mesh(mesh_path)
+        mesh.apply_scale(scale or detect_scale(float(np.ptp(mesh.vertices, axis=0).max())))
+        codebook = edgepose.build_codebook(mesh, views=views, scale=1.0)
     except edgepose.EdgePoseError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    viewpoints = edgepose.fibonacci_viewpoints(views)
-    t2 = time.perf_counter()
-    maps = edgepose.compute_maps(model, viewpoints, map_points)
-    t3 = time.perf_counter()
+    t = codebook.timings
+    print(f"object      {mesh_path} ({codebook.model.diameter * 1000:.0f} mm across)")
+    print(f"codebook    {len(codebook)} views in {t['total']:.2f} s "
+          f"(model {t['model']:.2f} s, maps {t['maps']:.2f} s, encoding {t['encode']:.2f} s)")
 
-    cos = np.clip(viewpoints.directions @ viewpoints.directions.T, -1, 1)
-    np.fill_diagonal(cos, -1)
-    spacing_deg = np.degrees(np.arccos(cos.max(axis=1)))
-    seen = maps.visible / len(model.points)
-    print(f"object        {mesh}")
-    print(f"model         {len(model.points)} points, diameter {model.diameter * 1000:.1f} mm, "
-          f"point spacing {model.spacing * 1000:.2f} mm, scale {model.scale:.2f} /m   ({(t1 - t0) * 1000:.0f} ms)")
-    print(f"viewpoints    {len(viewpoints)} on a Fibonacci sphere, nearest-neighbour spacing "
-          f"{spacing_deg.mean():.2f}° mean ({spacing_deg.min():.2f}–{spacing_deg.max():.2f}°)   ({(t2 - t1) * 1000:.1f} ms)")
-    print(f"maps          {maps.points.shape[0]} × {maps.points.shape[1]} points, visible share of the model "
-          f"{seen.min():.0%} min / {np.median(seen):.0%} median / {seen.max():.0%} max, "
-          f"{np.mean(maps.visible < map_points):.1%} of views padded   ({(t3 - t2) * 1000:.0f} ms)")
-    radius = np.linalg.norm(maps.points, axis=2).max(axis=1)
-    print(f"map extent    max ‖p‖ per map {radius.min():.2f}–{radius.max():.2f} (unit-sphere scale)")
+    view = render_view(mesh, seed=seed)
+    print(f"rendered    {len(view.cloud)} points at {np.linalg.norm(view.T_cam_obj[:3, 3]):.2f} m "
+          f"(1 mm depth noise, seed {seed})")
+    edgepose.estimate(view.cloud, codebook)  # first call loads onnxruntime's kernels
+    pose = edgepose.estimate(view.cloud, codebook)
+    errors = pose_errors(codebook.model.points + codebook.model.centre, pose.matrix, view.T_cam_obj,
+                         codebook.model.diameter, symmetric=False)
+    np.set_printoptions(precision=4, suppress=True)
+    print("estimated   T_cam_obj =\n" + _indent(pose.matrix))
+    print("true        T_cam_obj =\n" + _indent(view.T_cam_obj))
+    verdict = "correct" if errors.correct_add_or_s else "WRONG"
+    print(f"errors      rotation {errors.rotation_deg:.2f}°, translation {errors.translation_mm:.1f} mm, "
+          f"ADD {errors.add * 1000:.1f} mm ({verdict} at 0.1 × diameter = {errors.diameter * 100:.1f} mm)")
+    stages = "  ".join(f"{k} {v * 1000:.2f}" for k, v in pose.timings.items())
+    print(f"timings ms  {stages}")
     return 0
+
+
+def _indent(matrix) -> str:
+    return "\n".join("            " + line for line in str(matrix).splitlines())
 
 
 if __name__ == "__main__":

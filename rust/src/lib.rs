@@ -7,8 +7,10 @@
 pub mod error;
 pub mod maps;
 pub mod model;
+pub mod refine;
 pub mod rng;
 pub mod sampling;
+pub mod search;
 pub mod views;
 pub mod visibility;
 
@@ -24,3 +26,5 @@ pub use model::StandardModel;
 pub use sampling::farthest_point_sample;
 pub use views::{fibonacci_directions, view_rotation, viewpoints, Rotation};
 pub use visibility::visible_mask;
+pub use refine::{IcpResult, ModelIndex, Pose};
+pub use search::{top_k, verify};

@@ -10,7 +10,8 @@ use pyo3::prelude::*;
 
 use crate::error::GeometryError;
 use crate::views::Rotation;
-use crate::{maps, model, sampling, views, visibility, Point3};
+use crate::refine::{ModelIndex, Pose};
+use crate::{maps, model, sampling, search, views, visibility, Point3};
 
 fn value_error(e: GeometryError) -> PyErr {
     PyValueError::new_err(e.to_string())
@@ -183,6 +184,101 @@ fn view_rotation<'py>(py: Python<'py>, direction: PyReadonlyArray1<'py, f64>) ->
     Ok(Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec()).expect("3 × 3").into_pyarray(py))
 }
 
+fn matrix3(array: &PyReadonlyArray2<'_, f64>, name: &str) -> PyResult<nalgebra::Matrix3<f64>> {
+    let flat = array.as_slice().map_err(|_| PyValueError::new_err(format!("{name} must be C-contiguous")))?;
+    if array.shape() != [3, 3] {
+        return Err(PyValueError::new_err(format!("{name} must have shape (3, 3)")));
+    }
+    Ok(nalgebra::Matrix3::from_row_slice(flat))
+}
+
+/// The `k` codes most similar to `query`: `(indices (k,) u32, similarities (k,) f32)`, best first.
+#[pyfunction]
+fn top_k<'py>(
+    py: Python<'py>,
+    codes: PyReadonlyArray2<'py, f32>,
+    query: PyReadonlyArray1<'py, f32>,
+    k: usize,
+) -> PyResult<(Bound<'py, PyArray1<u32>>, Bound<'py, PyArray1<f32>>)> {
+    let dim = codes.shape()[1];
+    let c = codes.as_slice().map_err(|_| PyValueError::new_err("codes must be C-contiguous"))?;
+    let q = query.as_slice().map_err(|_| PyValueError::new_err("query must be contiguous"))?;
+    if q.len() != dim || dim == 0 {
+        return Err(PyValueError::new_err(format!("query has {} values, codes have {dim}", q.len())));
+    }
+    let best = py.detach(|| search::top_k(c, dim, q, k));
+    let (idx, sim): (Vec<u32>, Vec<f32>) = best.into_iter().map(|(i, s)| (i as u32, s)).unzip();
+    Ok((PyArray1::from_vec(py, idx), PyArray1::from_vec(py, sim)))
+}
+
+/// A model's points and normals (model frame, metres) with a kd-tree, for
+/// verification and ICP. Immutable: safe to share between threads.
+#[pyclass(frozen, name = "ModelIndex", module = "edgepose._core")]
+struct PyModelIndex {
+    inner: ModelIndex,
+}
+
+#[pymethods]
+impl PyModelIndex {
+    #[new]
+    fn new(py: Python<'_>, points: PyReadonlyArray2<'_, f32>, normals: PyReadonlyArray2<'_, f32>) -> PyResult<Self> {
+        let p = triples(&points, "points")?.to_vec();
+        let n = triples(&normals, "normals")?.to_vec();
+        if p.len() != n.len() || p.is_empty() {
+            return Err(PyValueError::new_err("points and normals must be non-empty and equal in length"));
+        }
+        Ok(Self { inner: py.detach(|| ModelIndex::new(p, n)) })
+    }
+
+    fn __len__(&self) -> usize {
+        self.inner.len()
+    }
+
+    /// Mean keypoint-to-model distance (metres) for each candidate pose
+    /// (model → camera: `rotations` (C, 3, 3), `translations` (C, 3)).
+    fn verify<'py>(
+        &self,
+        py: Python<'py>,
+        keypoints: PyReadonlyArray2<'py, f32>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let k = triples(&keypoints, "keypoints")?;
+        let r = rotations_from(&rotations)?;
+        let t = triples(&translations, "translations")?;
+        if r.len() != t.len() {
+            return Err(PyValueError::new_err("one translation per rotation"));
+        }
+        let poses: Vec<Pose> = r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect();
+        Ok(PyArray1::from_vec(py, py.detach(|| search::verify(&self.inner, k, &poses))))
+    }
+
+    /// Point-to-plane ICP of `cloud` (camera frame) from the pose (`rotation`,
+    /// `translation`), model → camera: `(R, t, iterations, converged, inliers, rmse)`.
+    fn refine<'py>(
+        &self,
+        py: Python<'py>,
+        cloud: PyReadonlyArray2<'py, f32>,
+        rotation: PyReadonlyArray2<'py, f64>,
+        translation: PyReadonlyArray1<'py, f64>,
+        max_iterations: usize,
+        max_distance: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let c = triples(&cloud, "cloud")?;
+        let r = matrix3(&rotation, "rotation")?;
+        let t = translation.as_slice().map_err(|_| PyValueError::new_err("translation must be contiguous"))?;
+        if t.len() != 3 {
+            return Err(PyValueError::new_err("translation must have 3 values"));
+        }
+        let start = Pose { rotation: r, translation: nalgebra::Vector3::new(t[0], t[1], t[2]) };
+        let out = py.detach(|| self.inner.refine(c, start, max_iterations, max_distance));
+        let rot = Array::from_shape_vec((3, 3), out.pose.rotation.transpose().as_slice().to_vec()).expect("3 × 3");
+        (rot.into_pyarray(py), PyArray1::from_vec(py, out.pose.translation.as_slice().to_vec()), out.iterations, out.converged, out.inliers, out.rmse)
+            .into_pyobject(py)
+            .map(|t| t.into_any())
+    }
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -194,5 +290,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(compute_maps, m)?)?;
     m.add_function(wrap_pyfunction!(normalize_to_map, m)?)?;
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
+    m.add_function(wrap_pyfunction!(top_k, m)?)?;
+    m.add_class::<PyModelIndex>()?;
     Ok(())
 }

@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from edgepose.cloud import cloud_from_depth
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -198,15 +200,10 @@ def depth_to_cloud(
     positive, finite depth (and ``mask`` true, when given), in row-major
     pixel order. ``depth / depth_scale`` is metres (``depth_scale=1000`` for
     uint16 millimetre images, as in Open3D)."""
-    z = np.asarray(depth, dtype=np.float64) / depth_scale
-    if z.shape != (camera.height, camera.width):
-        raise ValueError(f"depth must have shape {(camera.height, camera.width)}, got {z.shape}")
-    valid = np.isfinite(z) & (z > 0)
-    if mask is not None:
-        valid &= np.asarray(mask, dtype=bool)
-    rows, cols = np.nonzero(valid)
-    z = z[rows, cols]
-    return np.column_stack([(cols - camera.cx) * z / camera.fx, (rows - camera.cy) * z / camera.fy, z])
+    depth = np.asarray(depth)
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(f"depth must have shape {(camera.height, camera.width)}, got {depth.shape}")
+    return cloud_from_depth(depth, camera.K, mask, depth_scale)
 
 
 def _add_occluder(depth: np.ndarray, visible: np.ndarray, rng: np.random.Generator) -> None:

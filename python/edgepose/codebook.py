@@ -1,0 +1,236 @@
+"""Codebooks: everything edgepose needs to find one object's pose, built once
+per object in seconds and stored as one safetensors file (no pickle; the
+header is bounded JSON and each tensor's size is checked on load).
+
+A codebook holds, per viewpoint: the encoder's unit code, the angular
+spectrum (for the in-plane angle), the view rotation and the centroid of the
+visible model points; and once: the standard model, its scale, diameter and
+centre, and the fingerprint of the encoder that made the codes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from edgepose import _core
+from edgepose.encoder import Encoder, default_encoder
+from edgepose.errors import EdgePoseError
+from edgepose.maps import DEFAULT_MAP_POINTS, compute_maps
+from edgepose.model import DEFAULT_MODEL_POINTS, MeshSource, StandardModel, load_model
+from edgepose.views import DEFAULT_VIEWS, Viewpoints, fibonacci_viewpoints
+
+FORMAT = "edgepose-codebook"
+VERSION = 1
+#: A codebook file larger than this is not a codebook (bounds what loading reads).
+MAX_FILE_BYTES = 64 * 1024 * 1024
+
+
+class CodebookError(EdgePoseError):
+    """A codebook file that is unreadable, corrupt, of another format version,
+    or made by a different encoder than the one in use."""
+
+
+@dataclass(frozen=True, eq=False)
+class Codebook:
+    """One object's viewpoint codebook. Immutable; safe to share between threads."""
+
+    model: StandardModel
+    viewpoints: Viewpoints
+    codes: np.ndarray
+    """(V, D) float32 unit codes, one per viewpoint."""
+    spectra: np.ndarray
+    """(V, S) float32 angular spectra, one per viewpoint."""
+    centroids: np.ndarray
+    """(V, 3) float64 centroid of each view's visible model points, model frame, metres."""
+    fingerprint: str
+    """sha256 of the encoder that made ``codes``."""
+    map_points: int = DEFAULT_MAP_POINTS
+    timings: dict = field(default_factory=dict)
+    """Build time per stage, seconds (empty for a loaded codebook)."""
+    index: _core.ModelIndex = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "index", _core.ModelIndex(self.model.points, self.model.normals))
+
+    def __len__(self) -> int:
+        return len(self.codes)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the codebook to ``path`` atomically: a crash mid-save leaves
+        either the old file or the new one, never a broken one."""
+        from safetensors.numpy import save
+
+        _write_atomically(Path(path), save(self._tensors(), self._metadata()))
+
+    def _tensors(self) -> dict[str, np.ndarray]:
+        """The stored arrays, in their file dtypes."""
+        tensors = {
+            "codes": self.codes.astype(np.float16),
+            "spectra": self.spectra.astype(np.float16),
+            "view_rotations": self.viewpoints.rotations.astype(np.float32),
+            "view_centroids": self.centroids.astype(np.float32),
+            "model_points": self.model.points.astype(np.float32),
+            "model_normals": self.model.normals.astype(np.float16),
+        }
+        return {k: np.ascontiguousarray(v) for k, v in tensors.items()}
+
+    def _metadata(self) -> dict[str, str]:
+        return {
+            "format": FORMAT,
+            "version": str(VERSION),
+            "encoder": self.fingerprint,
+            "map_points": str(self.map_points),
+            "model": json.dumps(
+                {
+                    "centre": self.model.centre.tolist(),
+                    "scale": self.model.scale,
+                    "diameter": self.model.diameter,
+                    "spacing": self.model.spacing,
+                }
+            ),
+        }
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, encoder: Encoder | None = None) -> "Codebook":
+        """Read a codebook, checking its format, version, sizes and that it was
+        made by ``encoder`` (the shipped one by default)."""
+        from safetensors import SafetensorError
+        from safetensors.numpy import load
+
+        path = Path(path)
+        encoder = encoder or default_encoder()
+        try:
+            size = path.stat().st_size
+            if size > MAX_FILE_BYTES:
+                raise CodebookError(f"{path}: {size} bytes is too large for a codebook")
+            blob = path.read_bytes()
+            tensors = load(blob)
+            metadata = _metadata(blob)
+        except OSError as e:
+            raise CodebookError(f"{path}: cannot read ({e.strerror or e})") from None
+        except (SafetensorError, ValueError, UnicodeDecodeError) as e:
+            raise CodebookError(f"{path}: not a valid codebook file ({e})") from None
+        return cls._from_parts(tensors, metadata, encoder, str(path))
+
+    @classmethod
+    def _from_parts(cls, tensors: dict[str, np.ndarray], metadata: dict[str, str], encoder: Encoder, name: str) -> "Codebook":
+        """A codebook from stored arrays and header, after checking both."""
+        if metadata.get("format") != FORMAT:
+            raise CodebookError(f"{name}: not an edgepose codebook (format {metadata.get('format')!r})")
+        if metadata.get("version") != str(VERSION):
+            raise CodebookError(f"{name}: codebook format version {metadata.get('version')}, this edgepose reads {VERSION}")
+        if metadata.get("encoder") != encoder.fingerprint:
+            raise CodebookError(
+                f"{name}: built by encoder {str(metadata.get('encoder'))[:12]}…, "
+                f"but the encoder in use is {encoder.fingerprint[:12]}…; rebuild the codebook"
+            )
+        try:
+            info = json.loads(metadata["model"])
+            codes = tensors["codes"].astype(np.float32)
+            views = len(codes)
+            expected = {
+                "codes": (views, encoder.code_size),
+                "spectra": (views, encoder.spectrum_size),
+                "view_rotations": (views, 3, 3),
+                "view_centroids": (views, 3),
+            }
+            for key, shape in expected.items():
+                if tensors[key].shape != shape:
+                    raise CodebookError(f"{name}: {key} has shape {tensors[key].shape}, expected {shape}")
+            points = tensors["model_points"].astype(np.float32)
+            normals = tensors["model_normals"].astype(np.float32)
+            if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape or len(points) < 16:
+                raise CodebookError(f"{name}: model points/normals have shapes {points.shape}/{normals.shape}")
+            numbers = [info["scale"], info["diameter"], info["spacing"], *info["centre"]]
+            if not all(np.isfinite(numbers)) or not info["scale"] > 0 or len(info["centre"]) != 3:
+                raise CodebookError(f"{name}: model metadata is not valid: {info}")
+            arrays = ("codes", "spectra", "view_rotations", "view_centroids", "model_points", "model_normals")
+            if not all(np.isfinite(tensors[a]).all() for a in arrays):
+                raise CodebookError(f"{name}: contains NaN or infinite values")
+            # The stored float32 rotations must be this edgepose's viewpoints;
+            # use the exact float64 ones.
+            viewpoints = fibonacci_viewpoints(views)
+            drift = np.abs(tensors["view_rotations"] - viewpoints.rotations).max()
+            if not drift < 1e-5:
+                raise CodebookError(f"{name}: view rotations differ from the Fibonacci viewpoints by {drift:.2g}")
+            model = StandardModel(
+                points, normals, np.asarray(info["centre"], dtype=np.float64), float(info["scale"]),
+                float(info["diameter"]), float(info["spacing"]),
+            )
+            return cls(
+                model=model,
+                viewpoints=viewpoints,
+                codes=codes,
+                spectra=tensors["spectra"].astype(np.float32),
+                centroids=tensors["view_centroids"].astype(np.float64),
+                fingerprint=metadata["encoder"],
+                map_points=int(metadata["map_points"]),
+            )
+        except KeyError as e:
+            raise CodebookError(f"{name}: missing {e} in the codebook") from None
+        except (TypeError, ValueError) as e:
+            raise CodebookError(f"{name}: malformed codebook ({e})") from None
+
+
+def build_codebook(
+    source: MeshSource | StandardModel,
+    *,
+    views: int = DEFAULT_VIEWS,
+    n_points: int = DEFAULT_MODEL_POINTS,
+    scale: float | None = None,
+    encoder: Encoder | None = None,
+) -> Codebook:
+    """Codebook of one object: a mesh file or ``trimesh.Trimesh`` (see
+    :func:`edgepose.load_model` for ``scale``), or a ready StandardModel."""
+    encoder = encoder or default_encoder()
+    t0 = time.perf_counter()
+    model = source if isinstance(source, StandardModel) else load_model(source, n_points=n_points, scale=scale)
+    t1 = time.perf_counter()
+    viewpoints = fibonacci_viewpoints(views)
+    maps = compute_maps(model, viewpoints, encoder.map_points)
+    t2 = time.perf_counter()
+    codes, spectra = encoder.encode(maps.points)
+    t3 = time.perf_counter()
+    built = Codebook(model, viewpoints, codes, spectra, maps.centroids, encoder.fingerprint, encoder.map_points)
+    # Through the stored dtypes, so a built codebook and its saved copy give identical poses.
+    stored = Codebook._from_parts(built._tensors(), built._metadata(), encoder, "new codebook")
+    t4 = time.perf_counter()
+    object.__setattr__(
+        stored, "timings", {"model": t1 - t0, "maps": t2 - t1, "encode": t3 - t2, "store": t4 - t3, "total": t4 - t0}
+    )
+    return stored
+
+
+def _metadata(blob: bytes) -> dict[str, str]:
+    """The safetensors header's ``__metadata__`` (its size is bounded by the file's)."""
+    header_size = int.from_bytes(blob[:8], "little")
+    if header_size > len(blob) - 8:
+        raise ValueError("header size exceeds the file")
+    return json.loads(blob[8 : 8 + header_size].decode("utf-8")).get("__metadata__", {})
+
+
+def _write_atomically(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+

@@ -1,0 +1,78 @@
+//! Query hot path: cosine top-16 over 2,100 codes, verification of 16
+//! candidates by 32 keypoints, and ICP. `cargo bench --bench search`.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use nalgebra::{Rotation3, Unit, Vector3};
+
+use edgepose_core::rng::SplitMix64;
+use edgepose_core::{top_k, verify, ModelIndex, Point3, Pose};
+
+fn unit_codes(views: usize, dim: usize, rng: &mut SplitMix64) -> Vec<f32> {
+    let mut codes: Vec<f32> = (0..views * dim).map(|_| rng.next_f64() as f32 - 0.5).collect();
+    for code in codes.chunks_exact_mut(dim) {
+        let norm = code.iter().map(|v| v * v).sum::<f32>().sqrt();
+        code.iter_mut().for_each(|v| *v /= norm);
+    }
+    codes
+}
+
+/// 4,096 points on a 10 × 6 × 4 cm box surface with outward normals.
+fn box_model(rng: &mut SplitMix64) -> (Vec<Point3>, Vec<Point3>) {
+    let half = [0.05f32, 0.03, 0.02];
+    let mut points = Vec::new();
+    let mut normals = Vec::new();
+    while points.len() < 4096 {
+        let axis = (rng.next_f64() * 3.0) as usize % 3;
+        let sign = if rng.next_f64() < 0.5 { -1.0 } else { 1.0 };
+        let mut p = [0.0f32; 3];
+        for k in 0..3 {
+            p[k] = (rng.next_f64() as f32 * 2.0 - 1.0) * half[k];
+        }
+        p[axis] = sign * half[axis];
+        let mut n = [0.0f32; 3];
+        n[axis] = sign;
+        points.push(p);
+        normals.push(n);
+    }
+    (points, normals)
+}
+
+fn bench_search(c: &mut Criterion) {
+    let mut rng = SplitMix64::new(1);
+    let codes = unit_codes(2100, 64, &mut rng);
+    let query = unit_codes(1, 64, &mut rng);
+    let (points, normals) = box_model(&mut rng);
+    let index = ModelIndex::new(points.clone(), normals);
+    let truth = Pose {
+        rotation: *Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::new(1.0, 2.0, 0.5)), 0.8).matrix(),
+        translation: Vector3::new(0.02, -0.01, 0.6),
+    };
+    let cloud: Vec<Point3> = points
+        .iter()
+        .step_by(4)
+        .map(|p| {
+            let v = truth.apply(p);
+            [v.x as f32, v.y as f32, v.z as f32]
+        })
+        .collect();
+    let keypoints: Vec<Point3> = cloud.iter().step_by(32).take(32).cloned().collect();
+    let candidates: Vec<Pose> = (0..16)
+        .map(|k| Pose { rotation: *Rotation3::from_euler_angles(0.0, 0.0, k as f64 * 0.3).matrix() * truth.rotation, ..truth })
+        .collect();
+
+    let mut group = c.benchmark_group("query");
+    group.bench_function("top16_of_2100_codes", |b| b.iter(|| top_k(&codes, 64, &query, 16)));
+    group.bench_function("verify_16_candidates_32_keypoints", |b| b.iter(|| verify(&index, &keypoints, &candidates)));
+    group.bench_function("top16_plus_verify16", |b| {
+        b.iter(|| {
+            let best = top_k(&codes, 64, &query, 16);
+            (best, verify(&index, &keypoints, &candidates))
+        })
+    });
+    let start = Pose { rotation: *Rotation3::from_euler_angles(0.05, -0.04, 0.03).matrix() * truth.rotation, translation: truth.translation + Vector3::new(0.004, -0.003, 0.002) };
+    group.bench_function("icp_1024_points_20_iterations", |b| b.iter(|| index.refine(&cloud, start, 20, 0.02)));
+    group.finish();
+}
+
+criterion_group!(benches, bench_search);
+criterion_main!(benches);

@@ -1,0 +1,198 @@
+//! Point-to-plane ICP against the standard model: polishes a pose found by
+//! viewpoint search. Works in the model frame, where the model's kd-tree is
+//! built once per codebook.
+
+use std::num::NonZero;
+
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use nalgebra::{Matrix3, Matrix6, Rotation3, Vector3, Vector6};
+
+use crate::Point3;
+
+/// The model's points and normals with a kd-tree over the points (model
+/// frame, metres). Immutable, so many threads may query it at once.
+pub struct ModelIndex {
+    tree: ImmutableKdTree<f32, 3>,
+    points: Vec<Point3>,
+    normals: Vec<Point3>,
+}
+
+/// A rigid transform `p_cam = rotation · p_model + translation` (metres).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pose {
+    pub rotation: Matrix3<f64>,
+    pub translation: Vector3<f64>,
+}
+
+impl Pose {
+    pub fn inverse(&self) -> Pose {
+        let rt = self.rotation.transpose();
+        Pose { rotation: rt, translation: -(rt * self.translation) }
+    }
+
+    pub fn apply(&self, p: &Point3) -> Vector3<f64> {
+        self.rotation * Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64) + self.translation
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct IcpResult {
+    /// Refined pose, model frame → camera frame.
+    pub pose: Pose,
+    pub iterations: usize,
+    /// The last update moved less than the convergence threshold.
+    pub converged: bool,
+    /// Cloud points paired with the model in the last iteration.
+    pub inliers: usize,
+    /// Root-mean-square point-to-plane distance of the inliers, metres.
+    pub rmse: f64,
+}
+
+impl ModelIndex {
+    pub fn new(points: Vec<Point3>, normals: Vec<Point3>) -> Self {
+        assert_eq!(points.len(), normals.len(), "one normal per point");
+        let tree = ImmutableKdTree::new_from_slice(&points);
+        Self { tree, points, normals }
+    }
+
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    /// Index and squared distance of the model point nearest to `p` (model frame).
+    pub fn nearest(&self, p: &[f32; 3]) -> (usize, f32) {
+        let nn = self.tree.nearest_one::<SquaredEuclidean>(p);
+        (nn.item as usize, nn.distance)
+    }
+
+    /// Indices of the `k` nearest model points to `p`, nearest first.
+    pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<usize> {
+        let Some(k) = NonZero::new(k) else { return Vec::new() };
+        self.tree.nearest_n::<SquaredEuclidean>(p, k).into_iter().map(|nn| nn.item as usize).collect()
+    }
+
+    /// Point-to-plane ICP of an observed `cloud` (camera frame, metres) onto
+    /// the model, starting from `initial` (model → camera). Pairs farther
+    /// than `max_distance` metres, or than 3× the median pair distance, are
+    /// ignored. Stops after `max_iterations` or when an update moves less
+    /// than 1e-6 (radians + metres).
+    pub fn refine(&self, cloud: &[Point3], initial: Pose, max_iterations: usize, max_distance: f64) -> IcpResult {
+        let mut to_model = initial.inverse();
+        let mut result = IcpResult { pose: initial, iterations: 0, converged: false, inliers: 0, rmse: f64::NAN };
+        let mut pairs: Vec<(Vector3<f64>, Vector3<f64>, Vector3<f64>, f64)> = Vec::with_capacity(cloud.len());
+        for iteration in 1..=max_iterations {
+            pairs.clear();
+            for p in cloud {
+                let source = to_model.apply(p);
+                let query = [source.x as f32, source.y as f32, source.z as f32];
+                let (i, sq) = self.nearest(&query);
+                let d = (sq as f64).sqrt();
+                if d <= max_distance {
+                    let q = self.points[i];
+                    let n = self.normals[i];
+                    pairs.push((source, Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64), Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64), d));
+                }
+            }
+            if pairs.len() < 6 {
+                break;
+            }
+            let mut distances: Vec<f64> = pairs.iter().map(|p| p.3).collect();
+            let mid = distances.len() / 2;
+            let median = *distances.select_nth_unstable_by(mid, f64::total_cmp).1;
+            let cutoff = (3.0 * median).max(1e-4);
+
+            // Linearised: residual (s + ω×s + δt − q)·n = 0 for the update (ω, δt).
+            let mut jtj = Matrix6::<f64>::zeros();
+            let mut jtr = Vector6::<f64>::zeros();
+            let (mut inliers, mut sum_sq) = (0usize, 0.0f64);
+            for (s, q, n, d) in &pairs {
+                if *d > cutoff {
+                    continue;
+                }
+                let r = (s - q).dot(n);
+                let c = s.cross(n);
+                let j = Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z);
+                jtj += j * j.transpose();
+                jtr += j * r;
+                inliers += 1;
+                sum_sq += r * r;
+            }
+            let Some(chol) = jtj.cholesky() else { break };
+            let x = chol.solve(&(-jtr));
+            let omega = Vector3::new(x[0], x[1], x[2]);
+            let delta = Pose { rotation: *Rotation3::new(omega).matrix(), translation: Vector3::new(x[3], x[4], x[5]) };
+            to_model = Pose {
+                rotation: delta.rotation * to_model.rotation,
+                translation: delta.rotation * to_model.translation + delta.translation,
+            };
+            result = IcpResult {
+                pose: to_model.inverse(),
+                iterations: iteration,
+                converged: false,
+                inliers,
+                rmse: (sum_sq / inliers.max(1) as f64).sqrt(),
+            };
+            if x.norm() < 1e-6 {
+                result.converged = true;
+                break;
+            }
+        }
+        result
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::tests::cube_mesh;
+    use crate::model::StandardModel;
+
+    /// An L-shaped bracket of boxes: no symmetry, so ICP has one answer.
+    fn bracket() -> StandardModel {
+        let (v1, f1) = cube_mesh(0.05);
+        let (v2, f2) = cube_mesh(0.02);
+        let mut vertices: Vec<[f64; 3]> = v1.iter().map(|p| [p[0] * 1.6, p[1] * 0.6, p[2]]).collect();
+        vertices.extend(v2.iter().map(|p| [p[0] + 0.06, p[1] + 0.03, p[2] + 0.07]));
+        let mut faces = f1.clone();
+        faces.extend(f2.iter().map(|f| f.map(|i| i + 8)));
+        StandardModel::from_mesh(&vertices, &faces, 4096, 11).unwrap()
+    }
+
+    fn pose(axis: Vector3<f64>, angle: f64, t: Vector3<f64>) -> Pose {
+        Pose { rotation: *Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle).matrix(), translation: t }
+    }
+
+    #[test]
+    fn recovers_a_known_transform_from_a_perturbed_start() {
+        let model = bracket();
+        let index = ModelIndex::new(model.points.clone(), model.normals.clone());
+        let truth = pose(Vector3::new(0.3, -1.0, 0.5), 2.0, Vector3::new(0.05, -0.02, 0.7));
+        let cloud: Vec<Point3> = model.points.iter().step_by(3).map(|p| {
+            let v = truth.apply(p);
+            [v.x as f32, v.y as f32, v.z as f32]
+        }).collect();
+        let nudge = pose(Vector3::new(1.0, 1.0, 0.0), 0.12, Vector3::new(0.008, -0.006, 0.01));
+        let start = Pose { rotation: nudge.rotation * truth.rotation, translation: truth.translation + nudge.translation };
+        let out = index.refine(&cloud, start, 30, 0.05);
+        let angle = Rotation3::from_matrix(&(out.pose.rotation * truth.rotation.transpose())).angle();
+        assert!(angle.to_degrees() < 0.05, "rotation error {}°", angle.to_degrees());
+        assert!((out.pose.translation - truth.translation).norm() < 1e-4);
+        assert!(out.converged && out.rmse < 1e-4 && out.inliers > 1000, "{out:?}");
+    }
+
+    #[test]
+    fn nearest_matches_brute_force() {
+        let model = bracket();
+        let index = ModelIndex::new(model.points.clone(), model.normals.clone());
+        for q in [[0.0f32, 0.0, 0.0], [0.1, 0.02, -0.03], [-0.2, 0.5, 0.1]] {
+            let (i, sq) = index.nearest(&q);
+            let brute = model.points.iter().map(|p| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()).fold(f32::INFINITY, f32::min);
+            assert!((sq - brute).abs() < 1e-9);
+            assert_eq!(index.nearest_k(&q, 3)[0], i);
+        }
+    }
+}

@@ -1,0 +1,87 @@
+//! Viewpoint search: cosine top-K over a codebook's codes, and verification
+//! of candidate poses by how well the observed keypoints land on the model.
+
+use crate::refine::{ModelIndex, Pose};
+use crate::Point3;
+
+/// The `k` codes most similar to `query` (dot product of unit codes = cosine),
+/// best first, as `(view index, similarity)`. `codes` is row-major (V × dim).
+pub fn top_k(codes: &[f32], dim: usize, query: &[f32], k: usize) -> Vec<(usize, f32)> {
+    assert!(dim > 0 && codes.len() % dim == 0 && query.len() == dim, "codes must be V × dim");
+    let mut scored: Vec<(usize, f32)> = codes
+        .chunks_exact(dim)
+        .enumerate()
+        .map(|(v, code)| (v, code.iter().zip(query).map(|(a, b)| a * b).sum()))
+        .collect();
+    let k = k.min(scored.len());
+    if k == 0 {
+        return Vec::new();
+    }
+    // Highest similarity first; ties broken by view index, so results are deterministic.
+    let order = |a: &(usize, f32), b: &(usize, f32)| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0));
+    scored.select_nth_unstable_by(k - 1, order);
+    scored.truncate(k);
+    scored.sort_by(order);
+    scored
+}
+
+/// Mean distance (metres) from the observed `keypoints` (camera frame) to the
+/// model surface, with each candidate pose (model → camera): lower is better.
+pub fn verify(index: &ModelIndex, keypoints: &[Point3], candidates: &[Pose]) -> Vec<f64> {
+    candidates
+        .iter()
+        .map(|pose| {
+            let to_model = pose.inverse();
+            let total: f64 = keypoints
+                .iter()
+                .map(|p| {
+                    let m = to_model.apply(p);
+                    (index.nearest(&[m.x as f32, m.y as f32, m.z as f32]).1 as f64).sqrt()
+                })
+                .sum();
+            total / keypoints.len().max(1) as f64
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Matrix3, Rotation3, Vector3};
+
+    #[test]
+    fn top_k_matches_a_full_sort() {
+        let dim = 4;
+        let codes: Vec<f32> = (0..400).map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0).collect();
+        let query = [0.5f32, -0.5, 0.5, 0.5];
+        let mut all: Vec<(usize, f32)> = codes
+            .chunks_exact(dim)
+            .enumerate()
+            .map(|(v, c)| (v, c.iter().zip(&query).map(|(a, b)| a * b).sum()))
+            .collect();
+        all.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        assert_eq!(top_k(&codes, dim, &query, 16), all[..16].to_vec());
+        assert_eq!(top_k(&codes, dim, &query, 1000).len(), 100);
+    }
+
+    #[test]
+    fn the_true_pose_verifies_best() {
+        let points: Vec<Point3> = (0..2000)
+            .map(|i| {
+                let t = i as f32 * 0.01;
+                [0.05 * t.cos(), 0.03 * (2.0 * t).sin(), 0.002 * i as f32 - 2.0]
+            })
+            .map(|p| [p[0], p[1], p[2] * 0.04])
+            .collect();
+        let normals = vec![[0.0, 0.0, 1.0]; points.len()];
+        let index = ModelIndex::new(points.clone(), normals);
+        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
+        let keypoints: Vec<Point3> = points.iter().step_by(61).map(|p| {
+            let v = truth.apply(p);
+            [v.x as f32, v.y as f32, v.z as f32]
+        }).collect();
+        let wrong = Pose { rotation: *Rotation3::from_euler_angles(0.0, 0.0, 0.5).matrix(), ..truth };
+        let scores = verify(&index, &keypoints, &[wrong, truth]);
+        assert!(scores[1] < 1e-6 && scores[0] > 1e-3, "{scores:?}");
+    }
+}

@@ -1,0 +1,114 @@
+"""estimate(): end-to-end pose recovery on rendered views of real meshes."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+import edgepose
+from edgepose.eval import pose_errors, render_view
+from edgepose.model import _read_mesh
+
+
+@pytest.fixture(scope="module")
+def drill(ycb_dir):
+    mesh = _read_mesh(ycb_dir / "power_drill.ply")
+    return mesh, edgepose.build_codebook(mesh)
+
+
+def errors(pose, view, codebook):
+    model_points = codebook.model.points + codebook.model.centre
+    return pose_errors(model_points, pose.matrix, view.T_cam_obj, codebook.model.diameter, symmetric=False)
+
+
+def test_recovers_rendered_poses_of_an_unseen_object(drill):
+    mesh, codebook = drill
+    correct, rotation_deg, translation_mm = 0, [], []
+    for seed in range(12):
+        view = render_view(mesh, seed=seed)
+        pose = edgepose.estimate(view.cloud, codebook)
+        e = errors(pose, view, codebook)
+        correct += e.correct_add_or_s
+        rotation_deg.append(e.rotation_deg)
+        translation_mm.append(e.translation_mm)
+        assert pose.matrix.shape == (4, 4) and np.allclose(pose.matrix[3], [0, 0, 0, 1])
+        np.testing.assert_allclose(pose.R @ pose.R.T, np.eye(3), atol=1e-9)
+    assert correct >= 10, f"ADD < 0.1 d on {correct}/12 views"
+    assert np.median(rotation_deg) < 5.0 and np.median(translation_mm) < 5.0
+
+
+def test_refinement_improves_the_fit(drill):
+    mesh, codebook = drill
+    view = render_view(mesh, seed=100)
+    coarse = edgepose.estimate(view.cloud, codebook, refine=False)
+    fine = edgepose.estimate(view.cloud, codebook)
+    assert not coarse.refined and fine.refined
+    assert errors(fine, view, codebook).add <= errors(coarse, view, codebook).add + 1e-4
+    assert set(fine.timings) == {"prepare", "encode", "search", "irr", "verify", "refine", "total"}
+    assert len(fine.candidates) == 16 and fine.view in fine.candidates
+
+
+def test_same_input_same_pose_and_saved_codebook_same_pose(drill, tmp_path):
+    mesh, codebook = drill
+    view = render_view(mesh, seed=5)
+    a = edgepose.estimate(view.cloud, codebook)
+    b = edgepose.estimate(view.cloud.astype(np.float32).astype(np.float64), codebook)
+    assert np.array_equal(a.matrix, edgepose.estimate(view.cloud, codebook).matrix)
+    path = tmp_path / "drill.codebook"
+    codebook.save(path)
+    loaded = edgepose.Codebook.load(path)
+    assert np.array_equal(edgepose.estimate(view.cloud, loaded).matrix, a.matrix)
+    assert np.allclose(b.matrix, a.matrix, atol=1e-3)
+
+
+def test_accepts_open3d_like_clouds_and_depth_images(drill):
+    mesh, codebook = drill
+    view = render_view(mesh, seed=9)
+
+    class PointCloud:  # the shape of open3d.geometry.PointCloud that edgepose reads
+        points = view.cloud
+
+    cloud = edgepose.cloud_from_depth(view.depth, view.camera.K, view.mask, depth_scale=1.0)
+    np.testing.assert_allclose(cloud, view.cloud)
+    depth_mm = np.round(view.depth * 1000).astype(np.uint16)
+    cloud_mm = edgepose.cloud_from_depth(depth_mm, view.camera.K, view.mask)
+    np.testing.assert_allclose(cloud_mm, view.cloud, atol=1e-3)
+    assert np.array_equal(edgepose.estimate(PointCloud(), codebook).matrix, edgepose.estimate(view.cloud, codebook).matrix)
+
+
+def test_threads_give_the_serial_poses(drill):
+    mesh, codebook = drill
+    clouds = [render_view(mesh, seed=s).cloud for s in range(8)]
+    serial = [edgepose.estimate(c, codebook).matrix for c in clouds]
+    results: dict[int, np.ndarray] = {}
+
+    def work(i: int) -> None:
+        results[i] = edgepose.estimate(clouds[i], codebook).matrix
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert all(np.array_equal(results[i], serial[i]) for i in range(8))
+
+
+def test_bad_clouds_raise_clear_errors(drill):
+    _, codebook = drill
+    with pytest.raises(edgepose.InvalidCloudError, match=r"shape \(N, 3\)"):
+        edgepose.estimate(np.zeros((100, 2)), codebook)
+    with pytest.raises(edgepose.InvalidCloudError, match="0 finite points"):
+        edgepose.estimate(np.zeros((0, 3)), codebook)
+    with pytest.raises(edgepose.InvalidCloudError, match="finite points"):
+        edgepose.estimate(np.full((500, 3), np.nan), codebook)
+    with pytest.raises(edgepose.InvalidCloudError, match="dtype"):
+        edgepose.estimate(np.array([["a", "b", "c"]] * 100), codebook)
+
+
+def test_a_millimetre_cloud_is_reported(drill):
+    mesh, codebook = drill
+    cloud_mm = render_view(mesh, seed=3).cloud * 1000.0
+    with pytest.raises(edgepose.InvalidCloudError, match="millimetres"):
+        edgepose.estimate(cloud_mm, codebook)
