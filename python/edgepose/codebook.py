@@ -188,8 +188,9 @@ def build_codebook(
     encoder: Encoder | None = None,
 ) -> Codebook:
     """Codebook of one object: a mesh file or ``trimesh.Trimesh`` (see
-    :func:`edgepose.load_model` for ``scale``), or a ready StandardModel."""
-    encoder = encoder or default_encoder()
+    :func:`edgepose.load_model` for ``scale``), or a ready StandardModel.
+    Building is offline work, so the default encoder uses every core."""
+    encoder = encoder or default_encoder(threads=os.cpu_count() or 1)
     t0 = time.perf_counter()
     model = source if isinstance(source, StandardModel) else load_model(source, n_points=n_points, scale=scale)
     t1 = time.perf_counter()

@@ -82,7 +82,7 @@ class Encoder:
         return np.arctan2(cos_sin[:, 1], cos_sin[:, 0])
 
 
-@lru_cache(maxsize=1)
-def default_encoder() -> Encoder:
-    """The shipped networks, loaded once per process."""
-    return Encoder()
+@lru_cache(maxsize=4)
+def default_encoder(threads: int = 1) -> Encoder:
+    """The shipped networks, loaded once per process and thread count."""
+    return Encoder(threads=threads)
