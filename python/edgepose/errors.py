@@ -1,4 +1,8 @@
-"""The exceptions edgepose raises. Catch :class:`EdgePoseError` for all of them."""
+"""The exceptions edgepose raises. Catch :class:`EdgePoseError` for all of them.
+
+``CodebookError`` (in :mod:`edgepose.codebook`) and ``ModelFilesError`` (in
+:mod:`edgepose.encoder`) are EdgePoseErrors too, exported by the package.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +13,7 @@ class EdgePoseError(Exception):
 
 class InvalidModelError(EdgePoseError, ValueError):
     """An object model (mesh or point cloud) that cannot be used: empty,
-    degenerate, non-finite, or of absurd size."""
+    degenerate, flat, non-finite, or of absurd size."""
 
 
 class MeshLoadError(InvalidModelError):
@@ -17,4 +21,10 @@ class MeshLoadError(InvalidModelError):
 
 
 class InvalidCloudError(EdgePoseError, ValueError):
-    """An input point cloud of the wrong shape or type, or with too few valid points."""
+    """An input point cloud of the wrong shape or type, with too few valid
+    points, or whose size does not fit the object (e.g. millimetres)."""
+
+
+class InternalError(EdgePoseError, RuntimeError):
+    """A bug inside edgepose, e.g. a panic in the Rust core, caught before it
+    could abort the process. The message says where; please report it."""

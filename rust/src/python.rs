@@ -2,19 +2,60 @@
 //! checks shapes, borrows numpy buffers without copying, releases the GIL
 //! for the Rust work, and turns errors into `ValueError`. The public, typed
 //! API is the Python package around it.
+//!
+//! Every entry point runs inside [`guarded`]: a Rust panic (a bug, never an
+//! input error) unwinds to there and is raised as
+//! `edgepose.errors.InternalError`, an `EdgePoseError`, instead of pyo3's
+//! `PanicException` (a `BaseException` that `except Exception` misses). This
+//! needs `panic = "unwind"`, Rust's default, which the workspace profiles keep.
+
+use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use numpy::ndarray::Array;
 use numpy::{IntoPyArray, PyUntypedArrayMethods, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use rayon::prelude::*;
 
 use crate::error::GeometryError;
 use crate::views::Rotation;
 use crate::refine::{ModelIndex, Pose};
 use crate::{maps, model, sampling, search, views, visibility, Point3};
 
+pyo3::import_exception!(edgepose.errors, InternalError);
+
 fn value_error(e: GeometryError) -> PyErr {
     PyValueError::new_err(e.to_string())
+}
+
+/// Runs a binding's body; a panic anywhere in it (with the GIL released or
+/// in a rayon worker too: both unwind back to this thread) becomes an
+/// `InternalError` carrying the panic message.
+fn guarded<T>(body: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
+    catch_unwind(AssertUnwindSafe(body)).unwrap_or_else(|payload| {
+        let message = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown panic payload".into());
+        Err(InternalError::new_err(format!("edgepose core bug (Rust panic): {message}")))
+    })
+}
+
+/// TEST HOOK, not API: panics on purpose so the tests can check that a Rust
+/// panic reaches Python as `InternalError`. `where_` is "attached" (GIL
+/// held), "detached" (GIL released) or "rayon" (in a worker thread).
+#[pyfunction]
+fn _panic_for_tests(py: Python<'_>, message: String, where_: &str) -> PyResult<()> {
+    guarded(|| match where_ {
+        "attached" => panic!("{message}"),
+        "detached" => py.detach(|| -> PyResult<()> { panic!("{message}") }),
+        "rayon" => {
+            py.detach(|| (0..64).into_par_iter().for_each(|i| assert!(i < 63, "{message}")));
+            Ok(())
+        }
+        _ => Err(PyValueError::new_err(format!("unknown place {where_:?}"))),
+    })
 }
 
 /// Borrows an (N, 3) C-contiguous array as N triples, without copying.
@@ -53,10 +94,12 @@ fn standard_model_from_mesh<'py>(
     n_points: usize,
     seed: u64,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let v = triples(&vertices, "vertices")?;
-    let f = triples(&faces, "faces")?;
-    let m = py.detach(|| model::StandardModel::from_mesh(v, f, n_points, seed)).map_err(value_error)?;
-    model_tuple(py, m)
+    guarded(|| {
+        let v = triples(&vertices, "vertices")?;
+        let f = triples(&faces, "faces")?;
+        let m = py.detach(|| model::StandardModel::from_mesh(v, f, n_points, seed)).map_err(value_error)?;
+        model_tuple(py, m)
+    })
 }
 
 /// Standard model of surface points with normals (metres), same tuple as
@@ -68,10 +111,12 @@ fn standard_model_from_points<'py>(
     normals: PyReadonlyArray2<'py, f32>,
     n_points: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let p = triples(&points, "points")?;
-    let n = triples(&normals, "normals")?;
-    let m = py.detach(|| model::StandardModel::from_points(p, n, n_points)).map_err(value_error)?;
-    model_tuple(py, m)
+    guarded(|| {
+        let p = triples(&points, "points")?;
+        let n = triples(&normals, "normals")?;
+        let m = py.detach(|| model::StandardModel::from_points(p, n, n_points)).map_err(value_error)?;
+        model_tuple(py, m)
+    })
 }
 
 fn model_tuple<'py>(py: Python<'py>, m: model::StandardModel) -> PyResult<Bound<'py, PyAny>> {
@@ -83,14 +128,17 @@ fn model_tuple<'py>(py: Python<'py>, m: model::StandardModel) -> PyResult<Bound<
 
 /// `n` Fibonacci-sphere viewpoints: `(directions (n, 3), rotations (n, 3, 3))`.
 #[pyfunction]
-fn fibonacci_viewpoints(py: Python<'_>, n: usize) -> (Bound<'_, PyArray2<f64>>, Bound<'_, PyArray3<f64>>) {
-    let (directions, rotations) = py.detach(|| views::viewpoints(n));
-    let d: Vec<f64> = directions.iter().flat_map(|d| [d.x, d.y, d.z]).collect();
-    let r: Vec<f64> = rotations.iter().flat_map(|r| r.transpose().as_slice().to_vec()).collect();
-    (
-        Array::from_shape_vec((n, 3), d).expect("n × 3").into_pyarray(py),
-        Array::from_shape_vec((n, 3, 3), r).expect("n × 3 × 3").into_pyarray(py),
-    )
+#[allow(clippy::type_complexity)]
+fn fibonacci_viewpoints(py: Python<'_>, n: usize) -> PyResult<(Bound<'_, PyArray2<f64>>, Bound<'_, PyArray3<f64>>)> {
+    guarded(|| {
+        let (directions, rotations) = py.detach(|| views::viewpoints(n));
+        let d: Vec<f64> = directions.iter().flat_map(|d| [d.x, d.y, d.z]).collect();
+        let r: Vec<f64> = rotations.iter().flat_map(|r| r.transpose().as_slice().to_vec()).collect();
+        Ok((
+            Array::from_shape_vec((n, 3), d).expect("n × 3").into_pyarray(py),
+            Array::from_shape_vec((n, 3, 3), r).expect("n × 3 × 3").into_pyarray(py),
+        ))
+    })
 }
 
 /// Farthest-point sampling: indices of `m` points of an (N, 3) cloud.
@@ -100,9 +148,11 @@ fn farthest_point_sample<'py>(
     points: PyReadonlyArray2<'py, f32>,
     m: usize,
 ) -> PyResult<Bound<'py, PyArray1<u32>>> {
-    let p = triples(&points, "points")?;
-    let idx = py.detach(|| sampling::farthest_point_sample(p, m));
-    Ok(PyArray1::from_vec(py, idx))
+    guarded(|| {
+        let p = triples(&points, "points")?;
+        let idx = py.detach(|| sampling::farthest_point_sample(p, m));
+        Ok(PyArray1::from_vec(py, idx))
+    })
 }
 
 /// Visibility flags of view-frame points and normals (camera looks along +z).
@@ -113,12 +163,14 @@ fn visible_mask<'py>(
     normals: PyReadonlyArray2<'py, f32>,
     spacing: f32,
 ) -> PyResult<Bound<'py, PyArray1<bool>>> {
-    let p = triples(&points, "points")?;
-    let n = triples(&normals, "normals")?;
-    if p.len() != n.len() {
-        return Err(PyValueError::new_err("points and normals differ in length"));
-    }
-    Ok(PyArray1::from_vec(py, py.detach(|| visibility::visible_mask(p, n, spacing))))
+    guarded(|| {
+        let p = triples(&points, "points")?;
+        let n = triples(&normals, "normals")?;
+        if p.len() != n.len() {
+            return Err(PyValueError::new_err("points and normals differ in length"));
+        }
+        Ok(PyArray1::from_vec(py, py.detach(|| visibility::visible_mask(p, n, spacing))))
+    })
 }
 
 /// Maps of every viewpoint, in parallel:
@@ -134,27 +186,29 @@ fn compute_maps<'py>(
     rotations: PyReadonlyArray3<'py, f64>,
     m: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let p = triples(&points, "points")?;
-    let n = triples(&normals, "normals")?;
-    if p.len() != n.len() || p.is_empty() {
-        return Err(PyValueError::new_err("model points and normals must be non-empty and equal in length"));
-    }
-    let rots = rotations_from(&rotations)?;
-    let model = model::StandardModel {
-        points: p.to_vec(),
-        normals: n.to_vec(),
-        centre: [0.0; 3],
-        scale,
-        diameter: 0.0,
-        spacing,
-    };
-    let out = py.detach(|| maps::compute_maps(&model, &rots, m));
-    let v = rots.len();
-    let map_points = Array::from_shape_vec((v, m, 3), out.points.into_flattened()).expect("V × m × 3");
-    let centroids = Array::from_shape_vec((v, 3), out.centroids.into_flattened()).expect("V × 3");
-    (map_points.into_pyarray(py), centroids.into_pyarray(py), PyArray1::from_vec(py, out.visible))
-        .into_pyobject(py)
-        .map(|t| t.into_any())
+    guarded(|| {
+        let p = triples(&points, "points")?;
+        let n = triples(&normals, "normals")?;
+        if p.len() != n.len() || p.is_empty() {
+            return Err(PyValueError::new_err("model points and normals must be non-empty and equal in length"));
+        }
+        let rots = rotations_from(&rotations)?;
+        let model = model::StandardModel {
+            points: p.to_vec(),
+            normals: n.to_vec(),
+            centre: [0.0; 3],
+            scale,
+            diameter: 0.0,
+            spacing,
+        };
+        let out = py.detach(|| maps::compute_maps(&model, &rots, m));
+        let v = rots.len();
+        let map_points = Array::from_shape_vec((v, m, 3), out.points.into_flattened()).expect("V × m × 3");
+        let centroids = Array::from_shape_vec((v, 3), out.centroids.into_flattened()).expect("V × 3");
+        (map_points.into_pyarray(py), centroids.into_pyarray(py), PyArray1::from_vec(py, out.visible))
+            .into_pyobject(py)
+            .map(|t| t.into_any())
+    })
 }
 
 /// Centre, scale and resample a cloud to an `m`-point map: `(map (m, 3), centroid (3,))`.
@@ -165,23 +219,27 @@ fn normalize_to_map<'py>(
     scale: f32,
     m: usize,
 ) -> PyResult<(Bound<'py, PyArray2<f32>>, Bound<'py, PyArray1<f32>>)> {
-    let p = triples(&points, "points")?;
-    if p.is_empty() {
-        return Err(PyValueError::new_err("cloud is empty"));
-    }
-    let (map, centroid) = py.detach(|| maps::normalize_to_map(p, scale, m));
-    Ok((points_array(py, map), PyArray1::from_vec(py, centroid.to_vec())))
+    guarded(|| {
+        let p = triples(&points, "points")?;
+        if p.is_empty() {
+            return Err(PyValueError::new_err("cloud is empty"));
+        }
+        let (map, centroid) = py.detach(|| maps::normalize_to_map(p, scale, m));
+        Ok((points_array(py, map), PyArray1::from_vec(py, centroid.to_vec())))
+    })
 }
 
 /// Rotation object → view frame for one direction (object frame, towards the camera).
 #[pyfunction]
 fn view_rotation<'py>(py: Python<'py>, direction: PyReadonlyArray1<'py, f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let d = direction.as_slice().map_err(|_| PyValueError::new_err("direction must be contiguous"))?;
-    if d.len() != 3 || !d.iter().all(|v| v.is_finite()) || d.iter().all(|v| *v == 0.0) {
-        return Err(PyValueError::new_err("direction must be 3 finite values, not all zero"));
-    }
-    let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
-    Ok(Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec()).expect("3 × 3").into_pyarray(py))
+    guarded(|| {
+        let d = direction.as_slice().map_err(|_| PyValueError::new_err("direction must be contiguous"))?;
+        if d.len() != 3 || !d.iter().all(|v| v.is_finite()) || d.iter().all(|v| *v == 0.0) {
+            return Err(PyValueError::new_err("direction must be 3 finite values, not all zero"));
+        }
+        let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
+        Ok(Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec()).expect("3 × 3").into_pyarray(py))
+    })
 }
 
 fn matrix3(array: &PyReadonlyArray2<'_, f64>, name: &str) -> PyResult<nalgebra::Matrix3<f64>> {
@@ -200,15 +258,17 @@ fn top_k<'py>(
     query: PyReadonlyArray1<'py, f32>,
     k: usize,
 ) -> PyResult<(Bound<'py, PyArray1<u32>>, Bound<'py, PyArray1<f32>>)> {
-    let dim = codes.shape()[1];
-    let c = codes.as_slice().map_err(|_| PyValueError::new_err("codes must be C-contiguous"))?;
-    let q = query.as_slice().map_err(|_| PyValueError::new_err("query must be contiguous"))?;
-    if q.len() != dim || dim == 0 {
-        return Err(PyValueError::new_err(format!("query has {} values, codes have {dim}", q.len())));
-    }
-    let best = py.detach(|| search::top_k(c, dim, q, k));
-    let (idx, sim): (Vec<u32>, Vec<f32>) = best.into_iter().map(|(i, s)| (i as u32, s)).unzip();
-    Ok((PyArray1::from_vec(py, idx), PyArray1::from_vec(py, sim)))
+    guarded(|| {
+        let dim = codes.shape()[1];
+        let c = codes.as_slice().map_err(|_| PyValueError::new_err("codes must be C-contiguous"))?;
+        let q = query.as_slice().map_err(|_| PyValueError::new_err("query must be contiguous"))?;
+        if q.len() != dim || dim == 0 {
+            return Err(PyValueError::new_err(format!("query has {} values, codes have {dim}", q.len())));
+        }
+        let best = py.detach(|| search::top_k(c, dim, q, k));
+        let (idx, sim): (Vec<u32>, Vec<f32>) = best.into_iter().map(|(i, s)| (i as u32, s)).unzip();
+        Ok((PyArray1::from_vec(py, idx), PyArray1::from_vec(py, sim)))
+    })
 }
 
 /// A model's points and normals (model frame, metres) with a kd-tree, for
@@ -222,12 +282,14 @@ struct PyModelIndex {
 impl PyModelIndex {
     #[new]
     fn new(py: Python<'_>, points: PyReadonlyArray2<'_, f32>, normals: PyReadonlyArray2<'_, f32>) -> PyResult<Self> {
-        let p = triples(&points, "points")?.to_vec();
-        let n = triples(&normals, "normals")?.to_vec();
-        if p.len() != n.len() || p.is_empty() {
-            return Err(PyValueError::new_err("points and normals must be non-empty and equal in length"));
-        }
-        Ok(Self { inner: py.detach(|| ModelIndex::new(p, n)) })
+        guarded(|| {
+            let p = triples(&points, "points")?.to_vec();
+            let n = triples(&normals, "normals")?.to_vec();
+            if p.len() != n.len() || p.is_empty() {
+                return Err(PyValueError::new_err("points and normals must be non-empty and equal in length"));
+            }
+            Ok(Self { inner: py.detach(|| ModelIndex::new(p, n)) })
+        })
     }
 
     fn __len__(&self) -> usize {
@@ -243,14 +305,16 @@ impl PyModelIndex {
         rotations: PyReadonlyArray3<'py, f64>,
         translations: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let k = triples(&keypoints, "keypoints")?;
-        let r = rotations_from(&rotations)?;
-        let t = triples(&translations, "translations")?;
-        if r.len() != t.len() {
-            return Err(PyValueError::new_err("one translation per rotation"));
-        }
-        let poses: Vec<Pose> = r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect();
-        Ok(PyArray1::from_vec(py, py.detach(|| search::verify(&self.inner, k, &poses))))
+        guarded(|| {
+            let k = triples(&keypoints, "keypoints")?;
+            let r = rotations_from(&rotations)?;
+            let t = triples(&translations, "translations")?;
+            if r.len() != t.len() {
+                return Err(PyValueError::new_err("one translation per rotation"));
+            }
+            let poses: Vec<Pose> = r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect();
+            Ok(PyArray1::from_vec(py, py.detach(|| search::verify(&self.inner, k, &poses))))
+        })
     }
 
     /// Point-to-plane ICP of `cloud` (camera frame) from the pose (`rotation`,
@@ -264,18 +328,20 @@ impl PyModelIndex {
         max_iterations: usize,
         max_distance: f64,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let c = triples(&cloud, "cloud")?;
-        let r = matrix3(&rotation, "rotation")?;
-        let t = translation.as_slice().map_err(|_| PyValueError::new_err("translation must be contiguous"))?;
-        if t.len() != 3 {
-            return Err(PyValueError::new_err("translation must have 3 values"));
-        }
-        let start = Pose { rotation: r, translation: nalgebra::Vector3::new(t[0], t[1], t[2]) };
-        let out = py.detach(|| self.inner.refine(c, start, max_iterations, max_distance));
-        let rot = Array::from_shape_vec((3, 3), out.pose.rotation.transpose().as_slice().to_vec()).expect("3 × 3");
-        (rot.into_pyarray(py), PyArray1::from_vec(py, out.pose.translation.as_slice().to_vec()), out.iterations, out.converged, out.inliers, out.rmse)
-            .into_pyobject(py)
-            .map(|t| t.into_any())
+        guarded(|| {
+            let c = triples(&cloud, "cloud")?;
+            let r = matrix3(&rotation, "rotation")?;
+            let t = translation.as_slice().map_err(|_| PyValueError::new_err("translation must be contiguous"))?;
+            if t.len() != 3 {
+                return Err(PyValueError::new_err("translation must have 3 values"));
+            }
+            let start = Pose { rotation: r, translation: nalgebra::Vector3::new(t[0], t[1], t[2]) };
+            let out = py.detach(|| self.inner.refine(c, start, max_iterations, max_distance));
+            let rot = Array::from_shape_vec((3, 3), out.pose.rotation.transpose().as_slice().to_vec()).expect("3 × 3");
+            (rot.into_pyarray(py), PyArray1::from_vec(py, out.pose.translation.as_slice().to_vec()), out.iterations, out.converged, out.inliers, out.rmse)
+                .into_pyobject(py)
+                .map(|t| t.into_any())
+        })
     }
 }
 
@@ -292,5 +358,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
     m.add_class::<PyModelIndex>()?;
+    m.add_function(wrap_pyfunction!(_panic_for_tests, m)?)?;
     Ok(())
 }

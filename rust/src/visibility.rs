@@ -81,8 +81,10 @@ impl Grid {
             return None;
         }
         // Bounded grid even for a spacing far too small for the extent.
-        let width = (((max_x - min_x) / cell_size) as usize + 1).min(4096);
-        let height = (((max_y - min_y) / cell_size) as usize + 1).min(4096);
+        // Clamped before the cast: a tiny spacing would otherwise saturate to
+        // usize::MAX and wrap to an empty grid on the `+ 1`.
+        let width = ((max_x - min_x) / cell_size).min(4095.0) as usize + 1;
+        let height = ((max_y - min_y) / cell_size).min(4095.0) as usize + 1;
         let cell_size = cell_size.max((max_x - min_x) / 4095.0).max((max_y - min_y) / 4095.0);
         Some(Self { min_x, min_y, cell_size, width, height })
     }
@@ -136,6 +138,15 @@ mod tests {
             if p[0] < 0.4 && p[1] < 0.4 {
                 assert!(!v, "covered back point {p:?} must be hidden");
             }
+        }
+    }
+
+    #[test]
+    fn a_spacing_far_too_small_still_gives_a_bounded_grid() {
+        let (points, normals) = plate(20, 0.0, 50.0);
+        for spacing in [1e-30, f32::MIN_POSITIVE, 1e-45] {
+            let mask = visible_mask(&points, &normals, spacing);
+            assert!(mask.iter().all(|&v| v), "a lone plate is fully visible (spacing {spacing})");
         }
     }
 
