@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import edgepose
-from edgepose.codebook import MAX_FILE_BYTES
+from edgepose.codebook import MAX_FILE_BYTES, VERSION, _checksum
 
 
 @pytest.fixture(scope="module")
@@ -63,6 +63,18 @@ def _rewrite_header(blob: bytes, edit) -> bytes:
     return struct.pack("<Q", len(text)) + text + blob[8 + size :]
 
 
+def _resealed(blob: bytes, edit) -> bytes:
+    """``blob`` with its metadata edited and the checksum recomputed: what a
+    file written that way (another version, another encoder) looks like."""
+    from safetensors.numpy import load
+
+    def edit_and_seal(header):
+        edit(header["__metadata__"])
+        header["__metadata__"]["checksum"] = _checksum(load(blob), header["__metadata__"])
+
+    return _rewrite_header(blob, edit_and_seal)
+
+
 @pytest.mark.parametrize(
     "damage, message",
     [
@@ -72,10 +84,22 @@ def _rewrite_header(blob: bytes, edit) -> bytes:
         (lambda b: b"solid cube\nfacet normal 0 0 1\n" * 10, "not a valid codebook"),
         (lambda b: struct.pack("<Q", 1 << 60) + b[8:], "not a valid codebook"),
         (lambda b: _rewrite_header(b, lambda h: h["__metadata__"].update(version="99")), "version 99"),
-        (lambda b: _rewrite_header(b, lambda h: h["__metadata__"].update(encoder="0" * 64)), "built by encoder 000000000000"),
+        (lambda b: _resealed(b, lambda m: m.update(version="1")), f"version 1, this edgepose reads {VERSION}"),
+        (lambda b: _rewrite_header(b, lambda h: h["__metadata__"].update(encoder="0" * 64)), "checksum mismatch"),
+        (lambda b: _resealed(b, lambda m: m.update(encoder="0" * 64)), "built by encoder 000000000000"),
         (lambda b: _rewrite_header(b, lambda h: h["__metadata__"].update(format="other")), "not an edgepose codebook"),
-        (lambda b: _rewrite_header(b, lambda h: h["__metadata__"].pop("model")), "missing 'model'"),
+        (lambda b: _rewrite_header(b, lambda h: h["__metadata__"].pop("checksum")), "checksum mismatch"),
+        (lambda b: _resealed(b, lambda m: m.pop("model")), "missing 'model'"),
+        (lambda b: _resealed(b, lambda m: m.update(map_points="100000000")), "100000000' points per map"),
+        (lambda b: _resealed(b, lambda m: m.update(model=m["model"].replace('"diameter": ', '"diameter": -'))), "model metadata"),
         (lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[2100, 32])), "not a valid codebook"),
+        # Headers claiming huge arrays: checked against the bytes present, nothing allocated.
+        (lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[1 << 40, 64])), "not a valid codebook"),
+        (lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[1 << 32, 1 << 32, 1 << 32])), "not a valid codebook"),
+        (
+            lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[1 << 40, 64], data_offsets=[0, 1 << 47])),
+            "not a valid codebook",
+        ),
     ],
 )
 def test_damaged_files_raise_codebook_errors(drill_codebook, tmp_path, damage, message):
@@ -87,22 +111,34 @@ def test_damaged_files_raise_codebook_errors(drill_codebook, tmp_path, damage, m
         edgepose.Codebook.load(bad)
 
 
-def test_flipped_bytes_never_crash(drill_codebook, tmp_path):
+@pytest.mark.parametrize("region", ["header", "tensors"])
+def test_every_flipped_bit_is_detected(drill_codebook, tmp_path, region):
+    """One flipped bit, in the header or in the tensor bytes, never loads as a
+    (silently different) codebook: each is a CodebookError."""
     good = tmp_path / "good.codebook"
     drill_codebook.save(good)
-    blob = bytearray(good.read_bytes())
+    blob = good.read_bytes()
+    data_start = 8 + struct.unpack("<Q", blob[:8])[0]
+    low, high = (0, data_start) if region == "header" else (data_start, len(blob))
     rng = np.random.default_rng(3)
-    for trial in range(40):
+    path = tmp_path / "flipped.codebook"
+    for i in rng.integers(low, high, size=60):
         damaged = bytearray(blob)
-        for i in rng.integers(0, 600, size=4):  # the header region
-            damaged[i] ^= 1 << int(rng.integers(8))
-        path = tmp_path / f"flip{trial}.codebook"
+        damaged[i] ^= 1 << int(rng.integers(8))
         path.write_bytes(bytes(damaged))
-        try:
-            loaded = edgepose.Codebook.load(path)
-        except edgepose.CodebookError:
-            continue
-        assert len(loaded) == 2100  # a flip that left the file valid still loads a whole codebook
+        with pytest.raises(edgepose.CodebookError):
+            edgepose.Codebook.load(path)
+
+
+def test_non_regular_files_are_refused_without_blocking(tmp_path):
+    import os
+
+    fifo = tmp_path / "pipe.codebook"
+    os.mkfifo(fifo)  # reading it would block forever
+    with pytest.raises(edgepose.CodebookError, match="not a regular file"):
+        edgepose.Codebook.load(fifo)
+    with pytest.raises(edgepose.CodebookError, match="not a regular file"):
+        edgepose.Codebook.load(tmp_path)
 
 
 def test_missing_and_oversized_files(tmp_path):

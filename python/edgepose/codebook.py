@@ -2,6 +2,12 @@
 per object in seconds and stored as one safetensors file (no pickle; the
 header is bounded JSON and each tensor's size is checked on load).
 
+Loading trusts nothing: the file size is capped before reading, safetensors
+checks every tensor's offsets against the bytes actually present (so a header
+claiming huge shapes allocates nothing), and a sha256 over the header fields
+and every tensor's bytes (``checksum`` in the header) catches flipped bits
+that would otherwise load silently as different numbers.
+
 A codebook holds, per viewpoint: the encoder's unit code, the angular
 spectrum (for the in-plane angle), the view rotation and the centroid of the
 visible model points; and once: the standard model, its scale, diameter and
@@ -10,8 +16,10 @@ centre, and the fingerprint of the encoder that made the codes.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import stat
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -27,7 +35,8 @@ from edgepose.model import DEFAULT_MODEL_POINTS, MeshSource, StandardModel, load
 from edgepose.views import DEFAULT_VIEWS, Viewpoints, fibonacci_viewpoints
 
 FORMAT = "edgepose-codebook"
-VERSION = 1
+#: 2: header ``checksum`` (sha256 of the metadata and tensors) added.
+VERSION = 2
 #: A codebook file larger than this is not a codebook (bounds what loading reads).
 MAX_FILE_BYTES = 64 * 1024 * 1024
 
@@ -67,7 +76,8 @@ class Codebook:
         either the old file or the new one, never a broken one."""
         from safetensors.numpy import save
 
-        _write_atomically(Path(path), save(self._tensors(), self._metadata()))
+        tensors = self._tensors()
+        _write_atomically(Path(path), save(tensors, self._metadata(tensors)))
 
     def _tensors(self) -> dict[str, np.ndarray]:
         """The stored arrays, in their file dtypes."""
@@ -81,8 +91,8 @@ class Codebook:
         }
         return {k: np.ascontiguousarray(v) for k, v in tensors.items()}
 
-    def _metadata(self) -> dict[str, str]:
-        return {
+    def _metadata(self, tensors: dict[str, np.ndarray]) -> dict[str, str]:
+        metadata = {
             "format": FORMAT,
             "version": str(VERSION),
             "encoder": self.fingerprint,
@@ -96,6 +106,8 @@ class Codebook:
                 }
             ),
         }
+        metadata["checksum"] = _checksum(tensors, metadata)
+        return metadata
 
     @classmethod
     def load(cls, path: str | os.PathLike, encoder: Encoder | None = None) -> "Codebook":
@@ -107,10 +119,15 @@ class Codebook:
         path = Path(path)
         encoder = encoder or default_encoder()
         try:
-            size = path.stat().st_size
-            if size > MAX_FILE_BYTES:
-                raise CodebookError(f"{path}: {size} bytes is too large for a codebook")
-            blob = path.read_bytes()
+            info = path.stat()
+            if not stat.S_ISREG(info.st_mode):  # a FIFO or device would block or never end
+                raise CodebookError(f"{path}: not a regular file")
+            if info.st_size > MAX_FILE_BYTES:
+                raise CodebookError(f"{path}: {info.st_size} bytes is too large for a codebook")
+            with open(path, "rb") as f:
+                blob = f.read(MAX_FILE_BYTES + 1)  # the file may have grown since stat()
+            if len(blob) > MAX_FILE_BYTES:
+                raise CodebookError(f"{path}: more than {MAX_FILE_BYTES} bytes is too large for a codebook")
             tensors = load(blob)
             metadata = _metadata(blob)
         except OSError as e:
@@ -125,7 +142,12 @@ class Codebook:
         if metadata.get("format") != FORMAT:
             raise CodebookError(f"{name}: not an edgepose codebook (format {metadata.get('format')!r})")
         if metadata.get("version") != str(VERSION):
-            raise CodebookError(f"{name}: codebook format version {metadata.get('version')}, this edgepose reads {VERSION}")
+            raise CodebookError(
+                f"{name}: codebook format version {metadata.get('version')}, this edgepose reads {VERSION}; "
+                "rebuild it with edgepose.build_codebook"
+            )
+        if metadata.get("checksum") != _checksum(tensors, metadata):
+            raise CodebookError(f"{name}: checksum mismatch: the file is corrupt (flipped or altered bytes)")
         if metadata.get("encoder") != encoder.fingerprint:
             raise CodebookError(
                 f"{name}: built by encoder {str(metadata.get('encoder'))[:12]}…, "
@@ -133,8 +155,13 @@ class Codebook:
             )
         try:
             info = json.loads(metadata["model"])
+            for key, dtype in _DTYPES.items():
+                if tensors[key].dtype != dtype:
+                    raise CodebookError(f"{name}: {key} has dtype {tensors[key].dtype}, expected {np.dtype(dtype)}")
             codes = tensors["codes"].astype(np.float32)
             views = len(codes)
+            if views < 1:
+                raise CodebookError(f"{name}: holds no viewpoints")
             expected = {
                 "codes": (views, encoder.code_size),
                 "spectra": (views, encoder.spectrum_size),
@@ -144,12 +171,19 @@ class Codebook:
             for key, shape in expected.items():
                 if tensors[key].shape != shape:
                     raise CodebookError(f"{name}: {key} has shape {tensors[key].shape}, expected {shape}")
+            if metadata["map_points"] != str(encoder.map_points):
+                raise CodebookError(
+                    f"{name}: made with {metadata['map_points']!r} points per map, the encoder takes {encoder.map_points}"
+                )
             points = tensors["model_points"].astype(np.float32)
             normals = tensors["model_normals"].astype(np.float32)
             if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape or len(points) < 16:
                 raise CodebookError(f"{name}: model points/normals have shapes {points.shape}/{normals.shape}")
             numbers = [info["scale"], info["diameter"], info["spacing"], *info["centre"]]
-            if not all(np.isfinite(numbers)) or not info["scale"] > 0 or len(info["centre"]) != 3:
+            if (
+                not all(np.isfinite(numbers)) or len(info["centre"]) != 3
+                or not (info["scale"] > 0 and info["diameter"] > 0 and info["spacing"] >= 0)
+            ):
                 raise CodebookError(f"{name}: model metadata is not valid: {info}")
             arrays = ("codes", "spectra", "view_rotations", "view_centroids", "model_points", "model_normals")
             if not all(np.isfinite(tensors[a]).all() for a in arrays):
@@ -201,12 +235,38 @@ def build_codebook(
     t3 = time.perf_counter()
     built = Codebook(model, viewpoints, codes, spectra, maps.centroids, encoder.fingerprint, encoder.map_points)
     # Through the stored dtypes, so a built codebook and its saved copy give identical poses.
-    stored = Codebook._from_parts(built._tensors(), built._metadata(), encoder, "new codebook")
+    tensors = built._tensors()
+    stored = Codebook._from_parts(tensors, built._metadata(tensors), encoder, "new codebook")
     t4 = time.perf_counter()
     object.__setattr__(
         stored, "timings", {"model": t1 - t0, "maps": t2 - t1, "encode": t3 - t2, "store": t4 - t3, "total": t4 - t0}
     )
     return stored
+
+
+#: The stored arrays' file dtypes (see ``Codebook._tensors``).
+_DTYPES = {
+    "codes": np.float16,
+    "spectra": np.float16,
+    "view_rotations": np.float32,
+    "view_centroids": np.float32,
+    "model_points": np.float32,
+    "model_normals": np.float16,
+}
+
+
+def _checksum(tensors: dict[str, np.ndarray], metadata: dict[str, str]) -> str:
+    """sha256 of every header field but ``checksum`` and of every tensor's name,
+    dtype, shape and bytes, in a fixed order: independent of the file's layout,
+    so one flipped bit anywhere that still parses changes it."""
+    digest = hashlib.sha256()
+    fields = {k: v for k, v in metadata.items() if k != "checksum"}
+    digest.update(json.dumps(fields, sort_keys=True).encode())
+    for key in sorted(tensors):
+        array = np.ascontiguousarray(tensors[key])
+        digest.update(json.dumps([key, array.dtype.str, list(array.shape)]).encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def _metadata(blob: bytes) -> dict[str, str]:
