@@ -12,27 +12,99 @@ from edgepose.errors import InvalidCloudError
 
 #: Fewer valid points than this cannot give a pose.
 MIN_POINTS = 32
+#: Coordinates larger than this (metres from the camera) are sensor garbage, not
+#: points: such rows are dropped like NaN ones. Bounds every later computation.
+MAX_COORDINATE = 1e6
+#: A cloud spanning more than this many object diameters is not the object
+#: alone: millimetres, or an unsegmented scene.
+MAX_EXTENT_DIAMETERS = 5.0
+#: A cloud spanning less than this fraction of the object's diameter holds no
+#: shape to match (all points coincide, or the wrong units, e.g. kilometres).
+MIN_EXTENT_DIAMETERS = 0.02
+#: Rows checked at a time: validation never copies a large cloud whole.
+_CHUNK_ROWS = 1 << 16
 
 
-def as_cloud(cloud: object) -> np.ndarray:
-    """(N, 3) float64 copy of ``cloud`` (an array or anything with ``.points``,
-    e.g. an Open3D point cloud) with NaN/inf rows dropped."""
-    points = getattr(cloud, "points", cloud)
+def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.ndarray:
+    """(N, 3) float64 points of ``cloud`` (an array of any layout, float or
+    integer, or anything with ``.points``, e.g. an Open3D point cloud), with
+    rows holding NaN, inf or coordinates beyond ``MAX_COORDINATE`` dropped.
+
+    With ``max_points``, a larger cloud is subsampled (seeded, so the same
+    input gives the same points) *before* the float64 copy: memory stays
+    bounded by the chunk size and ``max_points`` whatever the input's size."""
     try:
-        array = np.asarray(points)
-    except Exception as e:
+        array = np.asarray(getattr(cloud, "points", cloud))
+    except Exception as e:  # ragged lists, objects with a broken __array__, ...
         raise InvalidCloudError(f"cloud is not array-like ({type(cloud).__name__}: {e})") from None
+    if array.dtype == np.bool_ or not (
+        np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
+    ):
+        raise InvalidCloudError(f"cloud must hold real numbers (float or integer), got dtype {array.dtype}")
     if array.ndim != 2 or array.shape[1] != 3:
-        raise InvalidCloudError(f"cloud must have shape (N, 3), got {array.shape}")
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
-        raise InvalidCloudError(f"cloud must hold numbers, got dtype {array.dtype}")
-    array = array.astype(np.float64)
-    finite = np.isfinite(array).all(axis=1)
-    if finite.sum() < MIN_POINTS:
+        hint = "; an organised (H, W, 3) cloud needs .reshape(-1, 3)" if array.ndim == 3 and array.shape[-1] == 3 else ""
+        raise InvalidCloudError(f"cloud must have shape (N, 3), got {array.shape}{hint}")
+
+    counts = [int(_valid_rows(array[s : s + _CHUNK_ROWS]).sum()) for s in range(0, len(array), _CHUNK_ROWS)]
+    valid = sum(counts)
+    if valid < MIN_POINTS:
         raise InvalidCloudError(
-            f"cloud has {int(finite.sum())} finite points of {len(array)}; at least {MIN_POINTS} are needed"
+            f"cloud has {valid} valid points of {len(array)} (the others are NaN, infinite or beyond "
+            f"{MAX_COORDINATE:g} m); at least {MIN_POINTS} are needed"
         )
-    return array[finite]
+    if max_points is not None and valid > max_points:
+        ranks = np.random.default_rng(seed).choice(valid, max_points, replace=False)
+    elif valid == len(array):
+        return array.astype(np.float64)
+    else:
+        ranks = np.arange(valid)
+    return array[_rows_of_valid(array, counts, ranks)].astype(np.float64)
+
+
+def clean_cloud(cloud: object, diameter: float, max_points: int) -> np.ndarray:
+    """The points of ``cloud`` that ``estimate`` matches against an object
+    ``diameter`` metres across: :func:`as_cloud` (at most ``max_points``),
+    then without points farther than a diameter from the median (segmentation
+    leaks, which would drag the centroid). Raises InvalidCloudError when what
+    remains cannot be the object at this scale (millimetres, an unsegmented
+    scene, or points that all coincide)."""
+    points = as_cloud(cloud, max_points)
+    near = np.linalg.norm(points - np.median(points, axis=0), axis=1) <= diameter
+    if near.sum() >= MIN_POINTS:
+        points = points[near]
+    extent = float(np.linalg.norm(np.ptp(points, axis=0)))
+    if extent > MAX_EXTENT_DIAMETERS * diameter:
+        raise InvalidCloudError(
+            f"cloud spans {extent:.3g} m but the object is {diameter:.3g} m across: "
+            "is the cloud in millimetres, or not segmented?"
+        )
+    if extent < MIN_EXTENT_DIAMETERS * diameter:
+        raise InvalidCloudError(
+            f"cloud spans only {extent:.3g} m but the object is {diameter:.3g} m across: "
+            "do its points coincide, or is it in other units than metres?"
+        )
+    return points
+
+
+def _valid_rows(chunk: np.ndarray) -> np.ndarray:
+    """(n,) bool: rows whose three coordinates are finite and within MAX_COORDINATE."""
+    if not np.issubdtype(chunk.dtype, np.floating):
+        chunk = chunk.astype(np.float64)  # integers: no overflow in abs()
+    return (np.abs(chunk) <= MAX_COORDINATE).all(axis=1)  # False for NaN too
+
+
+def _rows_of_valid(array: np.ndarray, counts: list[int], ranks: np.ndarray) -> np.ndarray:
+    """Row indices of the valid rows numbered ``ranks`` (in that order), chunk
+    by chunk, so no index array of the whole cloud is ever made."""
+    rows = np.empty(len(ranks), dtype=np.intp)
+    first_rank = np.cumsum([0, *counts])
+    chunk_of = np.searchsorted(first_rank, ranks, side="right") - 1
+    for c in np.unique(chunk_of):
+        start = int(c) * _CHUNK_ROWS
+        valid_here = np.flatnonzero(_valid_rows(array[start : start + _CHUNK_ROWS]))
+        picked = chunk_of == c
+        rows[picked] = start + valid_here[ranks[picked] - first_rank[c]]
+    return rows
 
 
 def cloud_from_depth(

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from edgepose import _core
-from edgepose.cloud import as_cloud
+from edgepose.cloud import clean_cloud
 from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import InvalidCloudError
@@ -88,20 +88,7 @@ def estimate(
     model = codebook.model
     t0 = time.perf_counter()
 
-    points = as_cloud(cloud)
-    if len(points) > MAX_CLOUD_POINTS:
-        points = points[np.random.default_rng(0).choice(len(points), MAX_CLOUD_POINTS, replace=False)]
-    # Points far from the bulk (segmentation leaks) would drag the centroid.
-    median = np.median(points, axis=0)
-    near = np.linalg.norm(points - median, axis=1) <= model.diameter
-    if near.sum() >= 32:
-        points = points[near]
-    extent = float(np.linalg.norm(np.ptp(points, axis=0)))
-    if extent > 5 * model.diameter:
-        raise InvalidCloudError(
-            f"cloud spans {extent:.3g} m but the object is {model.diameter:.3g} m across: "
-            "is the cloud in millimetres, or not segmented?"
-        )
+    points = clean_cloud(cloud, model.diameter, MAX_CLOUD_POINTS)
     centroid = points.mean(axis=0)
     r_corr = ray_alignment(centroid)
     corrected = ((points - centroid) @ r_corr.T).astype(np.float32)
