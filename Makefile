@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: demo test build bench wheel train clean
+.PHONY: demo test build bench wheel train codebooks clean
 
 $(BIN)/maturin:
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,11 @@ demo: build
 test: build
 	cargo test --workspace
 	$(BIN)/python -m pytest -q
+
+# The shipped example codebooks (codebooks/ links to python/edgepose/codebooks/,
+# so they install with the package); rebuild them after the encoder changes.
+codebooks: build
+	$(BIN)/edgepose build ../shared/data/ycb -o codebooks
 
 bench: build
 	cargo bench --workspace

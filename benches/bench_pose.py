@@ -27,23 +27,24 @@ import statistics
 import sys
 import time
 import traceback
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 import edgepose
-from edgepose.eval import YCB_SYMMETRIC, BopRow, auc, pose_errors, render_view, write_bop_csv
+from edgepose.eval import BopRow, auc, write_bop_csv
 from edgepose.eval.baselines import (
-    NO_POSE,
     EdgePoseMethod,
     Open3DBaseline,
     OpenCVPPFBaseline,
     PoseMethod,
     available_edgepose,
 )
-from edgepose.model import _read_mesh
+from edgepose.eval.benchmark import BenchObject as ObjectData
+from edgepose.eval.benchmark import MethodRun, ViewResult, load_object, summarise
+from edgepose.eval.benchmark import percent as _pct
+from edgepose.eval.benchmark import run_method as run_views
 
 REPO = Path(__file__).resolve().parents[1]
 YCB = REPO.parent / "shared" / "data" / "ycb"
@@ -102,52 +103,6 @@ def _named(method: PoseMethod, name: str) -> PoseMethod:
     return method
 
 
-@dataclass
-class ObjectData:
-    """One benchmark object: its mesh, metric points and rendered views."""
-
-    name: str
-    mesh: "trimesh.Trimesh"  # noqa: F821
-    points: np.ndarray
-    """(N, 3) float64 model points in the original mesh frame, metres (for the metrics)."""
-    diameter: float
-    """Metres."""
-    symmetric: bool
-    seeds: list[int]
-    clouds: list[np.ndarray]
-    """Per view: (N, 3) float64 camera-frame cloud, metres."""
-    poses: list[np.ndarray]
-    """Per view: (4, 4) true T_cam_obj."""
-
-
-@dataclass
-class ViewResult:
-    method: str
-    object: str
-    view: int
-    seed: int
-    points: int
-    latency_s: float
-    add: float
-    add_s: float
-    add_or_s: float
-    rotation_deg: float
-    translation_mm: float
-    diameter: float
-    correct_add_s: bool
-    correct_add_or_s: bool
-    score: float
-    T_est: np.ndarray
-    error: str
-
-
-@dataclass
-class MethodRun:
-    name: str
-    prepare_s: dict[str, float]
-    views: list[ViewResult]
-
-
 def load_objects(names: list[str], views: int, seed: int, occluders: int) -> list[ObjectData]:
     """Meshes, metric points and ``views`` rendered views per object; view
     ``i`` of object ``k`` (in sorted order of all objects) has seed
@@ -155,118 +110,32 @@ def load_objects(names: list[str], views: int, seed: int, occluders: int) -> lis
     every = sorted(p.stem for p in YCB.glob("*.ply"))
     objects = []
     for name in names:
-        mesh = _read_mesh(YCB / f"{name}.ply")
-        model = edgepose.load_model(mesh)
         k = every.index(name)
         seeds = [seed * 100_000 + k * 1000 + i for i in range(views)]
-        rendered = [render_view(mesh, seed=s, occluders=occluders) for s in seeds]
-        objects.append(
-            ObjectData(
-                name=name,
-                mesh=mesh,
-                points=model.points.astype(np.float64) + model.centre,
-                diameter=model.diameter,
-                symmetric=name in YCB_SYMMETRIC,
-                seeds=seeds,
-                clouds=[r.cloud for r in rendered],
-                poses=[r.T_cam_obj for r in rendered],
-            )
-        )
+        objects.append(load_object(YCB / f"{name}.ply", seeds, occluders=occluders))
     return objects
 
 
 def run_method(name: str, objects: list[ObjectData]) -> MethodRun:
     """Prepare and run one method on every view of every object. One untimed
     warm-up estimate per object (on its first view) precedes the timed ones."""
-    method = METHODS[name][0]()
-    run = MethodRun(name=name, prepare_s={}, views=[])
-    for obj in objects:
-        t0 = time.perf_counter()
-        method.prepare(obj.mesh)
-        run.prepare_s[obj.name] = time.perf_counter() - t0
-        _estimate(method, obj.clouds[0])
-        for i, (cloud, T_gt, seed) in enumerate(zip(obj.clouds, obj.poses, obj.seeds)):
-            T_est, latency, error = _estimate(method, cloud)
-            e = pose_errors(obj.points, T_est, T_gt, obj.diameter, obj.symmetric)
-            last = getattr(method, "last", None)
-            run.views.append(
-                ViewResult(
-                    method=name,
-                    object=obj.name,
-                    view=i,
-                    seed=seed,
-                    points=len(cloud),
-                    latency_s=latency,
-                    add=e.add,
-                    add_s=e.add_s,
-                    add_or_s=e.add_or_s,
-                    rotation_deg=e.rotation_deg,
-                    translation_mm=e.translation_mm,
-                    diameter=e.diameter,
-                    correct_add_s=e.correct_add_s,
-                    correct_add_or_s=e.correct_add_or_s,
-                    score=float(getattr(last, "score", 0.0)) if not error else 0.0,
-                    T_est=T_est,
-                    error=error,
-                )
+
+    def progress(obj: ObjectData, i: int, done: list[ViewResult], prepare_s: float) -> None:
+        if i % PROGRESS_EVERY == 0 or i == len(obj.clouds):
+            print(
+                f"  {name:<16} {obj.name:<16} {i:>3}/{len(obj.clouds)} views  "
+                f"ADD-S {_pct(done, 'correct_add_s'):>5.1f}%  "
+                f"median {statistics.median(v.latency_s for v in done) * 1e3:7.0f} ms  "
+                f"(prepare {prepare_s:.2f} s)",
+                flush=True,
             )
-            if (i + 1) % PROGRESS_EVERY == 0 or i + 1 == len(obj.clouds):
-                done = [v for v in run.views if v.object == obj.name]
-                print(
-                    f"  {name:<16} {obj.name:<16} {i + 1:>3}/{len(obj.clouds)} views  "
-                    f"ADD-S {_pct(done, 'correct_add_s'):>5.1f}%  "
-                    f"median {statistics.median(v.latency_s for v in done) * 1e3:7.0f} ms  "
-                    f"(prepare {run.prepare_s[obj.name]:.2f} s)",
-                    flush=True,
-                )
-    return run
 
-
-def _estimate(method: PoseMethod, cloud: np.ndarray) -> tuple[np.ndarray, float, str]:
-    """(T_est, seconds, error message); an exception counts as a miss (NO_POSE)."""
-    t0 = time.perf_counter()
-    try:
-        T = np.asarray(method.estimate(cloud), dtype=np.float64)
-        error = ""
-    except Exception as e:  # a failed estimate is a result, not a crash
-        T, error = NO_POSE.copy(), f"{type(e).__name__}: {e}"
-    latency = time.perf_counter() - t0
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        T, error = NO_POSE.copy(), error or f"invalid pose {T.shape}"
-    return T, latency, error
+    method = METHODS[name][0]()
+    method.name = name
+    return run_views(method, objects, progress)
 
 
 # ----------------------------------------------------------------- summaries
-
-
-@dataclass
-class Summary:
-    views: int
-    add_s_pass: float
-    add_or_s_pass: float
-    auc_add_s: float
-    auc_add_or_s: float
-    median_ms: float
-    p90_ms: float
-    failures: int
-
-
-def summarise(views: list[ViewResult]) -> Summary:
-    latency = np.array([v.latency_s for v in views]) * 1e3
-    return Summary(
-        views=len(views),
-        add_s_pass=_pct(views, "correct_add_s"),
-        add_or_s_pass=_pct(views, "correct_add_or_s"),
-        auc_add_s=100 * auc(np.array([v.add_s for v in views])),
-        auc_add_or_s=100 * auc(np.array([v.add_or_s for v in views])),
-        median_ms=float(np.median(latency)),
-        p90_ms=float(np.percentile(latency, 90)),
-        failures=sum(bool(v.error) for v in views),
-    )
-
-
-def _pct(views: list[ViewResult], field: str) -> float:
-    return 100.0 * sum(getattr(v, field) for v in views) / max(len(views), 1)
 
 
 def tables(runs: list[MethodRun], objects: list[ObjectData]) -> tuple[str, str, str]:

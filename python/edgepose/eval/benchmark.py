@@ -1,0 +1,201 @@
+"""The evaluation loop shared by ``edgepose eval`` and ``benches/bench_pose.py``:
+render views of each object with known poses, run a pose method on every
+view, score each estimate and summarise.
+
+Units are metres; poses are ``T_cam_obj``. Latency is the wall-clock time of
+one ``method.estimate(cloud)`` call; one untimed warm-up estimate per object
+precedes the timed ones.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from edgepose.eval.baselines import NO_POSE, PoseMethod
+from edgepose.eval.metrics import YCB_SYMMETRIC, auc, pose_errors
+from edgepose.eval.render import render_view
+
+if TYPE_CHECKING:
+    import trimesh
+
+
+@dataclass
+class BenchObject:
+    """One benchmark object: its mesh, metric points and rendered views."""
+
+    name: str
+    mesh: "trimesh.Trimesh"
+    points: np.ndarray
+    """(N, 3) float64 model points in the original mesh frame, metres (for the metrics)."""
+    diameter: float
+    """Metres."""
+    symmetric: bool
+    seeds: list[int]
+    clouds: list[np.ndarray]
+    """Per view: (N, 3) float64 camera-frame cloud, metres."""
+    poses: list[np.ndarray]
+    """Per view: (4, 4) true T_cam_obj."""
+
+
+@dataclass
+class ViewResult:
+    method: str
+    object: str
+    view: int
+    seed: int
+    points: int
+    latency_s: float
+    add: float
+    add_s: float
+    add_or_s: float
+    rotation_deg: float
+    translation_mm: float
+    diameter: float
+    correct_add_s: bool
+    correct_add_or_s: bool
+    score: float
+    T_est: np.ndarray
+    error: str
+
+
+@dataclass
+class MethodRun:
+    name: str
+    prepare_s: dict[str, float]
+    """Seconds of per-object preparation (codebook build, training), by object name."""
+    views: list[ViewResult]
+
+
+@dataclass
+class Summary:
+    views: int
+    add_s_pass: float
+    """Percent of views with ADD-S < 0.1 × diameter."""
+    add_or_s_pass: float
+    """Percent of views with ADD(-S) < 0.1 × diameter."""
+    auc_add_s: float
+    auc_add_or_s: float
+    median_ms: float
+    p90_ms: float
+    failures: int
+
+
+def load_object(
+    mesh: "str | Path | trimesh.Trimesh",
+    seeds: list[int],
+    *,
+    name: str | None = None,
+    symmetric: bool | None = None,
+    occluders: int = 0,
+) -> BenchObject:
+    """A mesh (file in metres or detected millimetres, or a Trimesh in metres)
+    and one rendered view (:func:`edgepose.eval.render_view`) per seed.
+    ``symmetric`` defaults to membership of :data:`YCB_SYMMETRIC` by name."""
+    import trimesh
+
+    from edgepose.model import _read_mesh, detect_scale, load_model
+
+    if not isinstance(mesh, trimesh.Trimesh):
+        name = name or Path(mesh).stem
+        mesh = _read_mesh(mesh)
+        scale = detect_scale(float(np.ptp(mesh.vertices, axis=0).max()))
+        if scale != 1.0:
+            mesh.apply_scale(scale)
+    name = name or "object"
+    model = load_model(mesh)
+    rendered = [render_view(mesh, seed=s, occluders=occluders) for s in seeds]
+    return BenchObject(
+        name=name,
+        mesh=mesh,
+        points=model.points.astype(np.float64) + model.centre,
+        diameter=model.diameter,
+        symmetric=name in YCB_SYMMETRIC if symmetric is None else symmetric,
+        seeds=list(seeds),
+        clouds=[r.cloud for r in rendered],
+        poses=[r.T_cam_obj for r in rendered],
+    )
+
+
+def run_method(
+    method: PoseMethod,
+    objects: list[BenchObject],
+    progress: Callable[[BenchObject, int, list[ViewResult], float], None] | None = None,
+) -> MethodRun:
+    """Prepare ``method`` for each object and estimate every view. After each
+    view, ``progress(object, views done, that object's results, prepare
+    seconds)`` is called when given."""
+    name = method.name
+    run = MethodRun(name=name, prepare_s={}, views=[])
+    for obj in objects:
+        t0 = time.perf_counter()
+        method.prepare(obj.mesh)
+        run.prepare_s[obj.name] = time.perf_counter() - t0
+        timed_estimate(method, obj.clouds[0])
+        done: list[ViewResult] = []
+        for i, (cloud, T_gt, seed) in enumerate(zip(obj.clouds, obj.poses, obj.seeds)):
+            T_est, latency, error = timed_estimate(method, cloud)
+            e = pose_errors(obj.points, T_est, T_gt, obj.diameter, obj.symmetric)
+            last = getattr(method, "last", None)
+            result = ViewResult(
+                method=name,
+                object=obj.name,
+                view=i,
+                seed=seed,
+                points=len(cloud),
+                latency_s=latency,
+                add=e.add,
+                add_s=e.add_s,
+                add_or_s=e.add_or_s,
+                rotation_deg=e.rotation_deg,
+                translation_mm=e.translation_mm,
+                diameter=e.diameter,
+                correct_add_s=e.correct_add_s,
+                correct_add_or_s=e.correct_add_or_s,
+                score=float(getattr(last, "score", 0.0)) if not error else 0.0,
+                T_est=T_est,
+                error=error,
+            )
+            run.views.append(result)
+            done.append(result)
+            if progress is not None:
+                progress(obj, i + 1, done, run.prepare_s[obj.name])
+    return run
+
+
+def timed_estimate(method: PoseMethod, cloud: np.ndarray) -> tuple[np.ndarray, float, str]:
+    """(T_est, seconds, error message); an exception counts as a miss (NO_POSE)."""
+    t0 = time.perf_counter()
+    try:
+        T = np.asarray(method.estimate(cloud), dtype=np.float64)
+        error = ""
+    except Exception as e:  # a failed estimate is a result, not a crash
+        T, error = NO_POSE.copy(), f"{type(e).__name__}: {e}"
+    latency = time.perf_counter() - t0
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        T, error = NO_POSE.copy(), error or f"invalid pose {T.shape}"
+    return T, latency, error
+
+
+def summarise(views: list[ViewResult]) -> Summary:
+    """Accuracies (percent), AUCs (× 100) and latencies (ms) of some views."""
+    latency = np.array([v.latency_s for v in views]) * 1e3
+    return Summary(
+        views=len(views),
+        add_s_pass=percent(views, "correct_add_s"),
+        add_or_s_pass=percent(views, "correct_add_or_s"),
+        auc_add_s=100 * auc(np.array([v.add_s for v in views])),
+        auc_add_or_s=100 * auc(np.array([v.add_or_s for v in views])),
+        median_ms=float(np.median(latency)),
+        p90_ms=float(np.percentile(latency, 90)),
+        failures=sum(bool(v.error) for v in views),
+    )
+
+
+def percent(views: list[ViewResult], field: str) -> float:
+    """Percent of ``views`` whose boolean ``field`` is true (0 for none)."""
+    return 100.0 * sum(getattr(v, field) for v in views) / max(len(views), 1)
