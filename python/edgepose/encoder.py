@@ -44,20 +44,26 @@ class Encoder:
             blobs = {name: (models_dir / name).read_bytes() for name in ("encoder.onnx", "irr.onnx")}
         except (OSError, ValueError) as e:
             raise ModelFilesError(f"cannot read network files in {models_dir}: {e}") from None
-        for name, blob in blobs.items():
-            digest = hashlib.sha256(blob).hexdigest()
-            if digest != manifest["files"].get(name):
-                raise ModelFilesError(f"{models_dir / name}: sha256 {digest[:12]}… differs from its manifest")
-        self.fingerprint: str = manifest["files"]["encoder.onnx"]
-        self.map_points: int = manifest["inputs"]["map_points"]
-        self.code_size: int = manifest["inputs"]["code_size"]
-        self.spectrum_size: int = manifest["inputs"]["spectrum_size"]
+        try:
+            for name, blob in blobs.items():
+                digest = hashlib.sha256(blob).hexdigest()
+                if digest != manifest["files"].get(name):
+                    raise ModelFilesError(f"{models_dir / name}: sha256 {digest[:12]}… differs from its manifest")
+            self.fingerprint: str = manifest["files"]["encoder.onnx"]
+            self.map_points: int = int(manifest["inputs"]["map_points"])
+            self.code_size: int = int(manifest["inputs"]["code_size"])
+            self.spectrum_size: int = int(manifest["inputs"]["spectrum_size"])
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise ModelFilesError(f"{models_dir / 'manifest.json'}: malformed ({type(e).__name__}: {e})") from None
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
         providers = ["CPUExecutionProvider"]
-        self._encoder = ort.InferenceSession(blobs["encoder.onnx"], options, providers=providers)
-        self._irr = ort.InferenceSession(blobs["irr.onnx"], options, providers=providers)
+        try:
+            self._encoder = ort.InferenceSession(blobs["encoder.onnx"], options, providers=providers)
+            self._irr = ort.InferenceSession(blobs["irr.onnx"], options, providers=providers)
+        except Exception as e:  # onnxruntime raises its own untyped failures
+            raise ModelFilesError(f"onnxruntime cannot load the networks in {models_dir}: {e}") from None
 
     def encode(self, maps: np.ndarray, batch: int = 128) -> tuple[np.ndarray, np.ndarray]:
         """(B, M, 3) maps → codes (B, code_size) unit float32, spectra (B, spectrum_size) float32."""

@@ -24,6 +24,14 @@ DEFAULT_MODEL_POINTS = 4096
 #: Largest extent (in file units) still read as metres; larger means millimetres.
 #: A robot handles objects well under 3 m, and mm models of them exceed 3 units.
 METRES_MAX_EXTENT = 3.0
+#: Objects smaller or larger than this (diameter, metres, after unit conversion)
+#: are a units mistake, not something a robot's depth camera can localise.
+MIN_DIAMETER = 1e-3
+MAX_DIAMETER = 10.0
+#: A model thinner than this fraction of its diameter (along its thinnest
+#: principal axis) is flat: a plane or a few coplanar triangles, with no
+#: shape for a depth cloud to lock onto. A credit card is ~1 % thick.
+MIN_THICKNESS = 1e-3
 
 MeshSource = Union[str, os.PathLike, "trimesh.Trimesh"]  # noqa: F821
 
@@ -91,13 +99,19 @@ def load_model(
             log.info("%s: extent %.1f units, read as millimetres", _name(source), extent)
     if not (np.isfinite(scale) and scale > 0):
         raise InvalidModelError(f"scale must be a positive number, got {scale}")
+    _check_size(float(np.linalg.norm(np.ptp(vertices, axis=0))) * scale, scale, _name(source))
     vertices = vertices * scale
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise InvalidModelError(f"{_name(source)}: faces must be (F, 3) vertex indices, got {faces.dtype} {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InvalidModelError(f"{_name(source)}: faces refer to vertices outside 0..{len(vertices) - 1}")
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
     try:
         fields = _core.standard_model_from_mesh(vertices, faces, n_points, seed)
     except ValueError as e:
         raise InvalidModelError(f"{_name(source)}: {e}") from None
-    return StandardModel(*fields)
+    return _checked(StandardModel(*fields), _name(source))
 
 
 def model_from_points(
@@ -111,11 +125,40 @@ def model_from_points(
     Thinned to ``n_points`` by farthest-point sampling when larger."""
     points = _as_triples(points, "points")
     normals = _as_triples(normals, "normals")
+    if len(points) and np.isfinite(points).all():
+        _check_size(float(np.linalg.norm(np.ptp(points, axis=0))), 1.0, "points")
     try:
         fields = _core.standard_model_from_points(points, normals, n_points)
     except ValueError as e:
         raise InvalidModelError(str(e)) from None
-    return StandardModel(*fields)
+    return _checked(StandardModel(*fields), "points")
+
+
+def _check_size(diameter: float, scale: float, name: str) -> None:
+    """InvalidModelError unless an object ``diameter`` metres across (its
+    bounding-box diagonal) is of a size a robot handles."""
+    if diameter == 0.0:
+        return  # all points coincide: the core reports it as degenerate
+    if not MIN_DIAMETER <= diameter <= MAX_DIAMETER:
+        raise InvalidModelError(
+            f"{name}: the object would be {diameter:.3g} m across (file units × {scale:g}); "
+            f"edgepose handles {MIN_DIAMETER:g}–{MAX_DIAMETER:g} m: pass the right `scale` "
+            "(metres per file unit)"
+        )
+
+
+def _checked(model: StandardModel, name: str) -> StandardModel:
+    """``model``, unless it is flat (see MIN_THICKNESS)."""
+    centred = model.points.astype(np.float64)
+    centred -= centred.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    thickness = float(np.ptp(centred @ axes[2]))
+    if thickness < MIN_THICKNESS * model.diameter:
+        raise InvalidModelError(
+            f"{name}: the model is flat ({thickness:.2g} m thick, {model.diameter:.3g} m across): "
+            "a plane or a few coplanar triangles has no shape to estimate a pose from"
+        )
+    return model
 
 
 def _read_mesh(path: str | os.PathLike) -> "trimesh.Trimesh":  # noqa: F821
