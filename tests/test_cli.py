@@ -220,6 +220,18 @@ def test_estimate_refuses_bad_inputs_with_one_line(drill, tmp_path):
     fails_cleanly(run("estimate", "-c", cb, str(tmp_path / "packed.pcd")), "binary_compressed")
 
 
+def test_estimate_saves_a_rerun_recording(drill, tmp_path):
+    pytest.importorskip("rerun", reason="the viz extra (rerun-sdk) is not installed")
+    codebook, view = drill
+    np.save(tmp_path / "cloud.npy", view.cloud)
+    out = run("estimate", "-c", str(DRILL_CODEBOOK), str(tmp_path / "cloud.npy"), "--rrd", str(tmp_path / "run.rrd"))
+    assert out.returncode == 0, out.stderr
+    recording = (tmp_path / "run.rrd").read_bytes()
+    assert recording[:3] == b"RRF"
+    for entity in (b"camera/power_drill/observed", b"camera/power_drill/estimate/model"):
+        assert entity in recording  # entity paths are stored uncompressed
+
+
 def write_pcd(path: Path, points: np.ndarray, binary: bool, data: str | None = None) -> None:
     """A PCL file with x y z (float32) and an rgb field the reader must skip."""
     rgb = np.arange(len(points), dtype=np.uint32)
