@@ -32,3 +32,32 @@ def compute_maps(
 def normalize_to_map(
     points: npt.NDArray[np.float32], scale: float, m: int
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
+def map_neighbours(maps: npt.NDArray[np.float32], centres: int, k: int) -> npt.NDArray[np.uint32]: ...
+def top_k(
+    codes: npt.NDArray[np.float32], query: npt.NDArray[np.float32], k: int
+) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
+
+class ModelIndex:
+    def __init__(self, points: npt.NDArray[np.float32], normals: npt.NDArray[np.float32]) -> None: ...
+    def __len__(self) -> int: ...
+    def verify(
+        self,
+        keypoints: npt.NDArray[np.float32],
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+    ) -> npt.NDArray[np.float64]: ...
+    def refine(
+        self,
+        cloud: npt.NDArray[np.float32],
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        max_iterations: int,
+        max_distance: float,
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.uint32],
+        npt.NDArray[np.bool_],
+        npt.NDArray[np.uint32],
+        npt.NDArray[np.float64],
+    ]: ...

@@ -1,10 +1,11 @@
 //! Map construction cost: all 2,100 view maps of a 4,096-point model, and its
-//! parts (visibility, farthest-point sampling). `cargo bench --bench maps`.
+//! parts (visibility, farthest-point sampling), and the encoder's neighbour
+//! groups of each map. `cargo bench --bench maps`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use rayon::prelude::*;
 
-use edgepose_core::{compute_maps, farthest_point_sample, view_map, viewpoints, visible_mask, StandardModel};
+use edgepose_core::{compute_maps, farthest_point_sample, map_neighbours, neighbours_of_maps, view_map, viewpoints, visible_mask, StandardModel};
 
 /// A torus (radii 6 cm and 2 cm): non-convex, so it exercises the z-buffer.
 fn torus_model() -> StandardModel {
@@ -61,6 +62,14 @@ fn bench_maps(c: &mut Criterion) {
     let mut fps = c.benchmark_group("fps");
     fps.bench_function(format!("{}_to_512", visible.len()), |b| b.iter(|| farthest_point_sample(&visible, 512)));
     fps.finish();
+
+    // The encoder's neighbour groups (128 centres × 16 neighbours), per map and for a whole codebook.
+    let maps = compute_maps(&model, &rotations, 512);
+    let mut groups = c.benchmark_group("neighbour_groups");
+    groups.bench_function("one_map_512_points_128x16", |b| b.iter(|| map_neighbours(&maps.points[..512], 128, 16)));
+    groups.sample_size(10);
+    groups.bench_function("all_2100_maps_128x16", |b| b.iter(|| neighbours_of_maps(&maps.points, 512, 128, 16)));
+    groups.finish();
 }
 
 criterion_group!(benches, bench_maps);

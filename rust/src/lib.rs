@@ -5,6 +5,7 @@
 //! Python; the pyo3 layer lives in [`python`] behind the `python` feature.
 
 pub mod error;
+pub mod grouping;
 pub mod maps;
 pub mod model;
 pub mod refine;
@@ -21,6 +22,7 @@ mod python;
 pub type Point3 = [f32; 3];
 
 pub use error::GeometryError;
+pub use grouping::{map_neighbours, neighbours_of_maps};
 pub use maps::{compute_maps, normalize_to_map, view_map, Maps, ViewMap};
 pub use model::StandardModel;
 pub use sampling::farthest_point_sample;

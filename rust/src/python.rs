@@ -20,7 +20,7 @@ use rayon::prelude::*;
 use crate::error::GeometryError;
 use crate::views::Rotation;
 use crate::refine::{ModelIndex, Pose};
-use crate::{maps, model, sampling, search, views, visibility, Point3};
+use crate::{grouping, maps, model, sampling, search, views, visibility, Point3};
 
 pyo3::import_exception!(edgepose.errors, InternalError);
 
@@ -211,6 +211,32 @@ fn compute_maps<'py>(
     })
 }
 
+/// The encoder's neighbour groups of each map in `maps` (B, m, 3): for each
+/// map's first `centres` points, the indices of their `k` nearest map points
+/// (B, centres, k), in parallel over maps.
+#[pyfunction]
+fn map_neighbours<'py>(
+    py: Python<'py>,
+    maps: PyReadonlyArray3<'py, f32>,
+    centres: usize,
+    k: usize,
+) -> PyResult<Bound<'py, PyArray3<u32>>> {
+    guarded(|| {
+        let [b, m, three] = maps.shape() else { unreachable!("a 3-D array") };
+        let (b, m) = (*b, *m);
+        if *three != 3 || centres > m || k > m || centres == 0 || k == 0 {
+            return Err(PyValueError::new_err(format!(
+                "maps of shape {:?} cannot give {centres} centres with {k} neighbours",
+                maps.shape()
+            )));
+        }
+        let flat = maps.as_slice().map_err(|_| PyValueError::new_err("maps must be C-contiguous"))?;
+        let points = flat.as_chunks::<3>().0;
+        let groups = py.detach(|| grouping::neighbours_of_maps(points, m, centres, k));
+        Ok(Array::from_shape_vec((b, centres, k), groups).expect("B × centres × k").into_pyarray(py))
+    })
+}
+
 /// Centre, scale and resample a cloud to an `m`-point map: `(map (m, 3), centroid (3,))`.
 #[pyfunction]
 fn normalize_to_map<'py>(
@@ -240,14 +266,6 @@ fn view_rotation<'py>(py: Python<'py>, direction: PyReadonlyArray1<'py, f64>) ->
         let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
         Ok(Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec()).expect("3 × 3").into_pyarray(py))
     })
-}
-
-fn matrix3(array: &PyReadonlyArray2<'_, f64>, name: &str) -> PyResult<nalgebra::Matrix3<f64>> {
-    let flat = array.as_slice().map_err(|_| PyValueError::new_err(format!("{name} must be C-contiguous")))?;
-    if array.shape() != [3, 3] {
-        return Err(PyValueError::new_err(format!("{name} must have shape (3, 3)")));
-    }
-    Ok(nalgebra::Matrix3::from_row_slice(flat))
 }
 
 /// The `k` codes most similar to `query`: `(indices (k,) u32, similarities (k,) f32)`, best first.
@@ -317,28 +335,39 @@ impl PyModelIndex {
         })
     }
 
-    /// Point-to-plane ICP of `cloud` (camera frame) from the pose (`rotation`,
-    /// `translation`), model → camera: `(R, t, iterations, converged, inliers, rmse)`.
+    /// Point-to-plane ICP of `cloud` (camera frame) from each start pose
+    /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)), the
+    /// starts in parallel: `(R (H, 3, 3), t (H, 3), iterations (H,),
+    /// converged (H,), inliers (H,), rmse (H,))`.
     fn refine<'py>(
         &self,
         py: Python<'py>,
         cloud: PyReadonlyArray2<'py, f32>,
-        rotation: PyReadonlyArray2<'py, f64>,
-        translation: PyReadonlyArray1<'py, f64>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
         max_iterations: usize,
         max_distance: f64,
     ) -> PyResult<Bound<'py, PyAny>> {
         guarded(|| {
             let c = triples(&cloud, "cloud")?;
-            let r = matrix3(&rotation, "rotation")?;
-            let t = translation.as_slice().map_err(|_| PyValueError::new_err("translation must be contiguous"))?;
-            if t.len() != 3 {
-                return Err(PyValueError::new_err("translation must have 3 values"));
+            let r = rotations_from(&rotations)?;
+            let t = triples(&translations, "translations")?;
+            if r.len() != t.len() {
+                return Err(PyValueError::new_err("one translation per rotation"));
             }
-            let start = Pose { rotation: r, translation: nalgebra::Vector3::new(t[0], t[1], t[2]) };
-            let out = py.detach(|| self.inner.refine(c, start, max_iterations, max_distance));
-            let rot = Array::from_shape_vec((3, 3), out.pose.rotation.transpose().as_slice().to_vec()).expect("3 × 3");
-            (rot.into_pyarray(py), PyArray1::from_vec(py, out.pose.translation.as_slice().to_vec()), out.iterations, out.converged, out.inliers, out.rmse)
+            let starts: Vec<Pose> = r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect();
+            let out = py.detach(|| self.inner.refine_each(c, &starts, max_iterations, max_distance));
+            let h = out.len();
+            let rot: Vec<f64> = out.iter().flat_map(|o| o.pose.rotation.transpose().as_slice().to_vec()).collect();
+            let tr: Vec<f64> = out.iter().flat_map(|o| o.pose.translation.as_slice().to_vec()).collect();
+            (
+                Array::from_shape_vec((h, 3, 3), rot).expect("H × 3 × 3").into_pyarray(py),
+                Array::from_shape_vec((h, 3), tr).expect("H × 3").into_pyarray(py),
+                PyArray1::from_vec(py, out.iter().map(|o| o.iterations as u32).collect()),
+                PyArray1::from_vec(py, out.iter().map(|o| o.converged).collect()),
+                PyArray1::from_vec(py, out.iter().map(|o| o.inliers as u32).collect()),
+                PyArray1::from_vec(py, out.iter().map(|o| o.rmse).collect()),
+            )
                 .into_pyobject(py)
                 .map(|t| t.into_any())
         })
@@ -355,6 +384,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(visible_mask, m)?)?;
     m.add_function(wrap_pyfunction!(compute_maps, m)?)?;
     m.add_function(wrap_pyfunction!(normalize_to_map, m)?)?;
+    m.add_function(wrap_pyfunction!(map_neighbours, m)?)?;
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
     m.add_class::<PyModelIndex>()?;
