@@ -8,8 +8,10 @@ depth cloud (../shared/DESIGN.md, step 7).
 4. in-plane angle of each candidate (IRR head, one batched call);
 5. verify each candidate pose by how close the map's keypoints land to the
    model (Rust kd-tree); the closest wins;
-6. translation from the centroids; point-to-plane ICP against the model
-   (Rust) unless ``refine=False``.
+6. translation from the centroids; unless ``refine=False``, point-to-plane
+   ICP against the model (Rust) from the best few distinct candidates in
+   parallel, keeping the best fit (this tells a near-symmetric object's
+   turned-over pose from the true one).
 """
 
 from __future__ import annotations
@@ -34,6 +36,16 @@ MAX_CLOUD_POINTS = 2048
 ICP_POINTS = 1024
 #: Keypoints (the first farthest-point samples of the map) used to verify candidates.
 KEYPOINTS = 32
+#: Distinct candidate poses refined by ICP (in parallel); the lowest fit wins. A
+#: near-symmetric object (a bottle turned about its axis) verifies almost equally
+#: well either way up; the ICP fit of each hypothesis tells them apart.
+HYPOTHESES = 3
+#: Points and ICP iterations used to compare the hypotheses; the winner is then
+#: refined with ``ICP_POINTS`` points and the caller's iterations.
+HYPOTHESIS_POINTS = 256
+HYPOTHESIS_ITERATIONS = 10
+#: Candidate rotations closer than this (degrees) to a kept one are the same hypothesis.
+DISTINCT_DEG = 20.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,7 +60,8 @@ class Pose:
     """Cosine similarity of the chosen view's code to the observed one (1 is best)."""
     fit: float
     """Mean distance (metres) from the observed points to the model at this pose:
-    the verification distance of the keypoints, or the ICP inlier RMSE when refined."""
+    the verification distance of the keypoints, or, when refined, the point-to-plane
+    RMSE of the ICP inliers of the best-fitting hypothesis."""
     view: int
     """Index of the chosen codebook viewpoint."""
     candidates: np.ndarray
@@ -65,6 +78,27 @@ class Pose:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = self.R, self.t
         return T
+
+
+def _subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """At most ``count`` of ``points``, drawn without replacement (seeded), C-contiguous."""
+    if len(points) > count:
+        points = points[np.random.default_rng(seed).choice(len(points), count, replace=False)]
+    return np.ascontiguousarray(points)
+
+
+def distinct_hypotheses(rotations: np.ndarray, order: np.ndarray, count: int, min_angle_deg: float) -> np.ndarray:
+    """Indices of up to ``count`` of ``rotations`` ((K, 3, 3)), taken in
+    ``order``, each at least ``min_angle_deg`` away from those taken before."""
+    cos_min = np.cos(np.radians(min_angle_deg))
+    kept: list[int] = []
+    for j in order:
+        # cos of the angle between two rotations: (trace(Raᵀ Rb) − 1) / 2.
+        if all((np.einsum("ij,ij->", rotations[j], rotations[k]) - 1) / 2 < cos_min for k in kept):
+            kept.append(int(j))
+            if len(kept) == count:
+                break
+    return np.asarray(kept, dtype=np.intp)
 
 
 def estimate(
@@ -111,19 +145,31 @@ def estimate(
     translations = centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
     keypoints = (query_map[:KEYPOINTS] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(np.float32)
     fit = codebook.index.verify(np.ascontiguousarray(keypoints, dtype=np.float32), rotations, translations)
-    best = int(np.argmin(fit))
-    rotation, translation, best_fit = rotations[best], translations[best], float(fit[best])
+    chosen = int(np.argmin(fit))
+    rotation, translation, best_fit = rotations[chosen], translations[chosen], float(fit[chosen])
     t5 = time.perf_counter()
 
     if refine:
-        subset = points
-        if len(points) > ICP_POINTS:
-            subset = points[np.random.default_rng(1).choice(len(points), ICP_POINTS, replace=False)]
-        rotation, translation, _, _, inliers, rmse = codebook.index.refine(
-            np.ascontiguousarray(subset, dtype=np.float32), rotation, translation, icp_iterations, 0.1 * model.diameter
+        cloud_f32 = points.astype(np.float32)
+        coarse = _subsample(cloud_f32, HYPOTHESIS_POINTS, seed=1)
+        starts = distinct_hypotheses(rotations, np.argsort(fit, kind="stable"), HYPOTHESES, DISTINCT_DEG)
+        max_distance = 0.1 * model.diameter
+        hyp_R, hyp_t, _, _, inliers, rmse = codebook.index.refine(
+            coarse, rotations[starts], translations[starts], HYPOTHESIS_ITERATIONS, max_distance
         )
-        if inliers >= 16 and np.isfinite(rmse):
-            best_fit = float(rmse)
+        # Compare fits only between hypotheses that explain (nearly) as many points.
+        usable = np.isfinite(rmse) & (inliers >= max(16, 0.9 * inliers.max()))
+        if usable.any():
+            pick = int(np.argmin(np.where(usable, rmse, np.inf)))
+            fine_R, fine_t, _, _, fine_inliers, fine_rmse = codebook.index.refine(
+                _subsample(cloud_f32, ICP_POINTS, seed=2), hyp_R[pick : pick + 1], hyp_t[pick : pick + 1],
+                icp_iterations, max_distance,
+            )
+            chosen = int(starts[pick])
+            if fine_inliers[0] >= 16 and np.isfinite(fine_rmse[0]):
+                rotation, translation, best_fit = fine_R[0], fine_t[0], float(fine_rmse[0])
+            else:
+                rotation, translation, best_fit = hyp_R[pick], hyp_t[pick], float(rmse[pick])
     t6 = time.perf_counter()
 
     # Model frame = object (mesh) frame shifted by the model centre.
@@ -131,9 +177,9 @@ def estimate(
     return Pose(
         R=rotation,
         t=t_obj,
-        score=float(similarity[best]),
+        score=float(similarity[chosen]),
         fit=best_fit,
-        view=int(candidates[best]),
+        view=int(candidates[chosen]),
         candidates=candidates,
         candidate_fit=fit,
         timings={
