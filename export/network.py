@@ -6,8 +6,9 @@ in unit-sphere scale. The camera may have turned by any angle θ about z, so:
 * the **backbone** computes per-point features that do not change under such
   a turn, by construction: each centre point sees its neighbours' offsets in
   its own radial frame (rotated by −φ, its polar angle), plus its radius and
-  depth. Sampling and grouping are plain tensor ops (kNN via top-k), so the
-  whole encoder exports to one ONNX graph.
+  depth. The groups (each centre's kNN) are an input of the graph: the Rust
+  core computes them at run time (a top-k inside ONNX cost a third of the
+  encoder's time), :func:`neighbour_groups` during training.
 * the **code head** max-pools those features into a unit code: identical for
   every in-plane turn, and trained (triplet loss on cosine, margin 0.1) to
   differ between viewpoints.
@@ -55,7 +56,10 @@ class Encoder(nn.Module):
         self.code = nn.Sequential(nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, CODE_SIZE))
         self.weights = nn.Linear(256, CHANNELS)
 
-    def forward(self, maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, maps: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``maps`` (B, N, 3) float; ``neighbours`` (B, CENTRES, NEIGHBOURS)
+        int64: each centre's nearest map points (:func:`neighbour_groups`; at
+        run time the Rust core computes the same groups)."""
         b, n, _ = maps.shape
         # Maps are in farthest-point order, so the first CENTRES points are an
         # even subset: use them as group centres.
@@ -64,13 +68,9 @@ class Encoder(nn.Module):
         r = torch.sqrt(x * x + y * y + 1e-8)
         cos_phi, sin_phi = x / r, y / r
 
-        # kNN of each centre among all map points.
-        sq = (centres * centres).sum(-1, keepdim=True) - 2 * centres @ maps.transpose(1, 2)
-        sq = sq + (maps * maps).sum(-1).unsqueeze(1)
-        _, idx = torch.topk(sq, NEIGHBOURS, dim=2, largest=False)
         offset = torch.arange(b, device=maps.device).view(b, 1, 1) * n
-        neighbours = maps.reshape(b * n, 3)[(idx + offset).reshape(-1)].reshape(b, CENTRES, NEIGHBOURS, 3)
-        d = neighbours - centres.unsqueeze(2)
+        grouped = maps.reshape(b * n, 3)[(neighbours + offset).reshape(-1)]
+        d = grouped.reshape(b, CENTRES, NEIGHBOURS, 3) - centres.unsqueeze(2)
 
         # Offsets in each centre's radial frame: unchanged by a turn about z.
         c, s = cos_phi.unsqueeze(-1), sin_phi.unsqueeze(-1)
@@ -91,6 +91,15 @@ class Encoder(nn.Module):
         imag = torch.einsum("bnc,bnm->bcm", w, sin_m) / CENTRES
         spectrum = F.normalize(torch.stack([real, imag], dim=-1).reshape(b, SPECTRUM_SIZE), dim=-1)
         return code, spectrum
+
+
+def neighbour_groups(maps: torch.Tensor) -> torch.Tensor:
+    """(B, CENTRES, NEIGHBOURS) int64: the NEIGHBOURS nearest map points of
+    each of the first CENTRES points of each map (B, N, 3). Training's
+    counterpart of the Rust core's ``map_neighbours``."""
+    centres = maps[:, :CENTRES, :]
+    sq = ((centres.unsqueeze(2) - maps.unsqueeze(1)) ** 2).sum(-1)
+    return torch.topk(sq, NEIGHBOURS, dim=2, largest=False).indices
 
 
 def harmonics(cos_phi: torch.Tensor, sin_phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

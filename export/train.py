@@ -26,11 +26,14 @@ import torch
 
 from export import data, shapes
 from export.network import (
+    CENTRES,
     CODE_SIZE,
     MAP_POINTS,
+    NEIGHBOURS,
     SPECTRUM_SIZE,
     Encoder,
     InPlaneRotation,
+    neighbour_groups,
     parameter_count,
 )
 
@@ -45,8 +48,8 @@ OPSET = 17
 def losses(encoder: Encoder, irr: InPlaneRotation, batch: data.Batch) -> dict[str, torch.Tensor]:
     observed = torch.from_numpy(batch.observed)
     codebook = torch.from_numpy(batch.codebook)
-    code_o, spec_o = encoder(observed)
-    code_b, spec_b = encoder(codebook)
+    code_o, spec_o = encoder(observed, neighbour_groups(observed))
+    code_b, spec_b = encoder(codebook, neighbour_groups(codebook))
 
     sim = code_o @ code_b.T  # (B, B) cosine similarities
     positive = sim.diagonal().unsqueeze(1)
@@ -90,15 +93,20 @@ def batches(models, seed: int, start_step: int, shapes_per_batch: int, views: in
 
 def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, str]:
     """Writes encoder.onnx and irr.onnx (dynamic batch, self-contained) and
-    checks onnxruntime against torch on random inputs."""
+    checks onnxruntime against torch on random inputs; the encoder's
+    neighbour groups come from the Rust core, as at run time."""
     import onnxruntime as ort
+
+    from edgepose import _core
 
     out.mkdir(parents=True, exist_ok=True)
     encoder.eval(), irr.eval()
     maps = torch.randn(4, MAP_POINTS, 3) * 0.4
+    groups = torch.from_numpy(_core.map_neighbours(maps.numpy(), CENTRES, NEIGHBOURS).astype(np.int64))
     torch.onnx.export(
-        encoder, (maps,), out / "encoder.onnx", input_names=["maps"], output_names=["code", "spectrum"],
-        dynamic_axes={"maps": {0: "batch"}, "code": {0: "batch"}, "spectrum": {0: "batch"}},
+        encoder, (maps, groups), out / "encoder.onnx", input_names=["maps", "neighbours"],
+        output_names=["code", "spectrum"],
+        dynamic_axes={"maps": {0: "batch"}, "neighbours": {0: "batch"}, "code": {0: "batch"}, "spectrum": {0: "batch"}},
         opset_version=OPSET, dynamo=False,
     )
     observed, candidates = torch.randn(1, SPECTRUM_SIZE), torch.randn(16, SPECTRUM_SIZE)
@@ -108,10 +116,10 @@ def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, 
         opset_version=OPSET, dynamo=False,
     )
     with torch.no_grad():
-        code, spectrum = encoder(maps)
+        code, spectrum = encoder(maps, groups)
         angle = irr(observed, candidates)
     enc = ort.InferenceSession(str(out / "encoder.onnx"), providers=["CPUExecutionProvider"])
-    ort_code, ort_spec = enc.run(None, {"maps": maps.numpy()})
+    ort_code, ort_spec = enc.run(None, {"maps": maps.numpy(), "neighbours": groups.numpy()})
     rot = ort.InferenceSession(str(out / "irr.onnx"), providers=["CPUExecutionProvider"])
     (ort_angle,) = rot.run(None, {"observed": observed.numpy(), "candidates": candidates.numpy()})
     worst = max(
@@ -120,6 +128,23 @@ def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, 
     if worst > 1e-4:
         raise RuntimeError(f"onnxruntime differs from torch by {worst:.2e}")
     return {name: hashlib.sha256((out / name).read_bytes()).hexdigest() for name in ("encoder.onnx", "irr.onnx")}
+
+
+def write_manifest(out: Path, hashes: dict[str, str], encoder: Encoder, irr: InPlaneRotation, training: dict) -> dict:
+    """``manifest.json`` beside the exported networks: hashes, sizes, the
+    inputs the runtime must prepare, and how the weights were trained."""
+    manifest = {
+        "format": 2,
+        "files": hashes,
+        "parameters": {"encoder": parameter_count(encoder), "irr": parameter_count(irr), "total": parameter_count(encoder, irr)},
+        "inputs": {
+            "map_points": MAP_POINTS, "centres": CENTRES, "neighbours": NEIGHBOURS,
+            "code_size": CODE_SIZE, "spectrum_size": SPECTRUM_SIZE,
+        },
+        "training": training,
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -188,19 +213,13 @@ def main(argv: list[str] | None = None) -> int:
                         "schedule": schedule.state_dict(), "step": step}, checkpoint)
 
     hashes = export_onnx(encoder, irr, args.out)
-    manifest = {
-        "format": 1,
-        "files": hashes,
-        "parameters": {"encoder": parameter_count(encoder), "irr": parameter_count(irr), "total": parameter_count(encoder, irr)},
-        "inputs": {"map_points": MAP_POINTS, "code_size": CODE_SIZE, "spectrum_size": SPECTRUM_SIZE},
-        "training": {
-            "command": "python -m export.train " + " ".join(argv if argv is not None else sys.argv[1:]),
-            "steps": args.steps, "shapes_per_batch": args.shapes_per_batch, "views_per_shape": args.views_per_shape,
-            "shapes": len(models), "data": "shared/data/train_shapes (1,000 blobs + 26 CAD parts) + procedural; never YCB",
-            "seed": args.seed, "seconds": round(time.perf_counter() - started),
-        },
+    training = {
+        "command": "python -m export.train " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "steps": args.steps, "shapes_per_batch": args.shapes_per_batch, "views_per_shape": args.views_per_shape,
+        "shapes": len(models), "data": "shared/data/train_shapes (1,000 blobs + 26 CAD parts) + procedural; never YCB",
+        "seed": args.seed, "seconds": round(time.perf_counter() - started),
     }
-    (args.out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    manifest = write_manifest(args.out, hashes, encoder, irr, training)
     print(f"exported to {args.out}: {manifest['parameters']['total']} parameters", flush=True)
     return 0
 

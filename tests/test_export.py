@@ -26,9 +26,10 @@ def test_code_is_invariant_and_spectrum_turns_with_the_map():
     encoder, irr = network.Encoder().eval(), network.InPlaneRotation().eval()
     maps = torch.randn(3, network.MAP_POINTS, 3) * 0.4
     with torch.no_grad():
-        code, spectrum = encoder(maps)
+        code, spectrum = encoder(maps, network.neighbour_groups(maps))
         for theta in (0.3, 2.0, -2.9):
-            turned_code, turned_spectrum = encoder(turn(maps, theta))
+            turned = turn(maps, theta)
+            turned_code, turned_spectrum = encoder(turned, network.neighbour_groups(turned))
             assert torch.allclose(code, turned_code, atol=1e-5)
             # Harmonic m of every channel picks up a phase of m·θ.
             s = spectrum.reshape(3, network.CHANNELS, network.HARMONICS, 2)
@@ -41,6 +42,32 @@ def test_code_is_invariant_and_spectrum_turns_with_the_map():
             cos_sin = irr(turned_spectrum, spectrum)
             found = torch.atan2(cos_sin[:, 1], cos_sin[:, 0])
             assert torch.allclose(found, torch.full_like(found, theta), atol=math.radians(0.5))
+
+
+def test_rust_neighbour_groups_equal_training_groups():
+    # Run time groups come from the Rust core, training's from torch: same sets.
+    from edgepose import _core
+
+    maps = torch.randn(6, network.MAP_POINTS, 3) * 0.4
+    rust = _core.map_neighbours(maps.numpy(), network.CENTRES, network.NEIGHBOURS)
+    ours = network.neighbour_groups(maps).numpy()
+    assert rust.shape == ours.shape == (6, network.CENTRES, network.NEIGHBOURS)
+    assert np.array_equal(np.sort(rust, axis=-1), np.sort(ours, axis=-1))
+    assert np.array_equal(rust[:, :, 0], np.broadcast_to(np.arange(network.CENTRES), (6, network.CENTRES)))
+
+
+def test_reexport_keeps_the_shipped_networks_arithmetic(tmp_path):
+    # Weights read back out of the shipped ONNX files and exported again give
+    # the same codes, spectra and angles as the shipped files.
+    from export import reexport
+
+    assert reexport.main(["--out", str(tmp_path)]) == 0
+    shipped, again = Encoder(), Encoder(tmp_path)
+    maps = (np.random.default_rng(2).normal(size=(8, 512, 3)) * 0.4).astype(np.float32)
+    for a, b in zip(shipped.encode(maps), again.encode(maps)):
+        np.testing.assert_allclose(a, b, atol=1e-5)
+    spectra = shipped.encode(maps)[1]
+    np.testing.assert_allclose(shipped.in_plane_angles(spectra[0], spectra), again.in_plane_angles(spectra[0], spectra), atol=1e-5)
 
 
 def test_training_pairs_carry_the_true_in_plane_angle():

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from edgepose import _core
 from edgepose.errors import EdgePoseError
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
@@ -53,6 +54,9 @@ class Encoder:
             self.map_points: int = int(manifest["inputs"]["map_points"])
             self.code_size: int = int(manifest["inputs"]["code_size"])
             self.spectrum_size: int = int(manifest["inputs"]["spectrum_size"])
+            # Each map's local regions: its first `centres` points and their nearest neighbours.
+            self.centres: int = int(manifest["inputs"]["centres"])
+            self.neighbours: int = int(manifest["inputs"]["neighbours"])
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise ModelFilesError(f"{models_dir / 'manifest.json'}: malformed ({type(e).__name__}: {e})") from None
         options = ort.SessionOptions()
@@ -72,7 +76,9 @@ class Encoder:
             raise ValueError(f"maps must have shape (B, {self.map_points}, 3), got {maps.shape}")
         codes, spectra = [], []
         for start in range(0, len(maps), batch):
-            code, spectrum = self._encoder.run(None, {"maps": maps[start : start + batch]})
+            chunk = maps[start : start + batch]
+            groups = _core.map_neighbours(chunk, self.centres, self.neighbours).astype(np.int64)
+            code, spectrum = self._encoder.run(None, {"maps": chunk, "neighbours": groups})
             codes.append(code)
             spectra.append(spectrum)
         if not codes:
