@@ -49,8 +49,8 @@ def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.
     valid = sum(counts)
     if valid < MIN_POINTS:
         raise InvalidCloudError(
-            f"cloud has {valid} valid points of {len(array)} (the others are NaN, infinite or beyond "
-            f"{MAX_COORDINATE:g} m); at least {MIN_POINTS} are needed"
+            f"cloud has {valid} finite points of {len(array)} within {MAX_COORDINATE:g} m "
+            f"(rows with NaN, inf or larger coordinates are dropped); at least {MIN_POINTS} are needed"
         )
     if max_points is not None and valid > max_points:
         ranks = np.random.default_rng(seed).choice(valid, max_points, replace=False)
@@ -88,8 +88,9 @@ def clean_cloud(cloud: object, diameter: float, max_points: int) -> np.ndarray:
 
 def _valid_rows(chunk: np.ndarray) -> np.ndarray:
     """(n,) bool: rows whose three coordinates are finite and within MAX_COORDINATE."""
-    if not np.issubdtype(chunk.dtype, np.floating):
-        chunk = chunk.astype(np.float64)  # integers: no overflow in abs()
+    if chunk.dtype not in (np.float32, np.float64):
+        # Integers (abs(INT_MIN) overflows) and float16 (MAX_COORDINATE would round to inf).
+        chunk = chunk.astype(np.float64)
     return (np.abs(chunk) <= MAX_COORDINATE).all(axis=1)  # False for NaN too
 
 
