@@ -22,7 +22,7 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
     let ys: Vec<f32> = map.iter().map(|p| p[1]).collect();
     let zs: Vec<f32> = map.iter().map(|p| p[2]).collect();
     let mut distances = vec![0.0f32; map.len()];
-    let mut candidates: Vec<(f32, u32)> = Vec::with_capacity(map.len());
+    let mut candidates: Vec<(f32, u32)> = vec![(0.0, 0); map.len()];
     // Split the map into k blocks: their k minima are k distinct distances, so
     // the largest of them bounds the k-th smallest from above.
     let block = map.len().div_ceil(k);
@@ -36,20 +36,28 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
             }
             bound = if least > bound { least } else { bound };
         }
-        candidates.clear();
-        candidates.extend(distances.iter().enumerate().filter(|(_, d)| **d <= bound).map(|(j, d)| (*d, j as u32)));
-        if candidates.len() < k {
+        // Keep the points within the bound, without branches: write every
+        // point, advance only past the kept ones.
+        let mut kept = 0;
+        for (j, d) in distances.iter().enumerate() {
+            candidates[kept] = (*d, j as u32);
+            kept += (*d <= bound) as usize;
+        }
+        if kept < k {
             // Only NaN coordinates get here: rank every point (NaN last).
-            candidates.clear();
-            candidates.extend(distances.iter().enumerate().map(|(j, d)| (*d, j as u32)));
+            for (j, d) in distances.iter().enumerate() {
+                candidates[j] = (*d, j as u32);
+            }
+            kept = distances.len();
         }
+        let chosen = &mut candidates[..kept];
         let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-        if candidates.len() > k {
-            candidates.select_nth_unstable_by(k - 1, order);
-            candidates.truncate(k);
+        if chosen.len() > k {
+            chosen.select_nth_unstable_by(k - 1, order);
         }
-        candidates.sort_unstable_by(order);
-        out.extend(candidates.iter().map(|&(_, j)| j));
+        let chosen = &mut chosen[..k];
+        chosen.sort_unstable_by(order);
+        out.extend(chosen.iter().map(|&(_, j)| j));
     }
     out
 }
@@ -57,7 +65,7 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
 /// [`map_neighbours`] of every map in `points` (maps of `m` points each,
 /// flattened map-major), in parallel: `maps × centres × k` indices.
 pub fn neighbours_of_maps(points: &[Point3], m: usize, centres: usize, k: usize) -> Vec<u32> {
-    assert!(m > 0 && points.len() % m == 0, "points must hold whole maps of {m} points");
+    assert!(m > 0 && points.len().is_multiple_of(m), "points must hold whole maps of {m} points");
     let per_map: Vec<Vec<u32>> = points.par_chunks(m).map(|map| map_neighbours(map, centres, k)).collect();
     per_map.concat()
 }
