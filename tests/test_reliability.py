@@ -99,9 +99,9 @@ def test_float32_and_integer_clouds_are_accepted(drill, view, reference_pose):
         (np.zeros((100, 4)), r"got \(100, 4\)"),
         (np.zeros((10, 10, 3)), r"reshape\(-1, 3\)"),
         ([[0.0, 0.0], [1.0]], "not array-like"),
-        (np.zeros((0, 3)), f"0 finite points of 0 .*at least {MIN_POINTS}"),
-        (np.full((500, 3), np.nan), "0 finite points of 500"),
-        (np.full((500, 3), 1e300), "0 finite points of 500"),
+        (np.zeros((0, 3)), f"0 valid points of 0 .*at least {MIN_POINTS}"),
+        (np.full((500, 3), np.nan), "0 valid points of 500"),
+        (np.full((500, 3), 1e300), "0 valid points of 500"),
     ],
 )
 def test_bad_clouds_name_the_problem(drill, cloud, message):
@@ -111,7 +111,7 @@ def test_bad_clouds_name_the_problem(drill, cloud, message):
 
 def test_too_few_points_coincident_points_and_wrong_units(drill, view):
     _, codebook = drill
-    with pytest.raises(edgepose.InvalidCloudError, match=f"{MIN_POINTS - 1} finite points"):
+    with pytest.raises(edgepose.InvalidCloudError, match=f"{MIN_POINTS - 1} valid points"):
         edgepose.estimate(view.cloud[: MIN_POINTS - 1], codebook)
     assert edgepose.estimate(view.cloud[::len(view.cloud) // MIN_POINTS][:MIN_POINTS], codebook).matrix.shape == (4, 4)
     with pytest.raises(edgepose.InvalidCloudError, match="coincide"):

@@ -49,8 +49,8 @@ def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.
     valid = sum(counts)
     if valid < MIN_POINTS:
         raise InvalidCloudError(
-            f"cloud has {valid} finite points of {len(array)} within {MAX_COORDINATE:g} m "
-            f"(rows with NaN, inf or larger coordinates are dropped); at least {MIN_POINTS} are needed"
+            f"cloud has {valid} valid points of {len(array)} (rows with NaN, inf or coordinates beyond "
+            f"{MAX_COORDINATE:g} m are dropped); at least {MIN_POINTS} are needed"
         )
     if max_points is not None and valid > max_points:
         ranks = np.random.default_rng(seed).choice(valid, max_points, replace=False)
