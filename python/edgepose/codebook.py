@@ -11,7 +11,13 @@ that would otherwise load silently as different numbers.
 A codebook holds, per viewpoint: the encoder's unit code, the angular
 spectrum (for the in-plane angle), the view rotation and the centroid of the
 visible model points; and once: the standard model, its scale, diameter and
-centre, and the fingerprint of the encoder that made the codes.
+centre, the fingerprint of the encoder that made the codes and, when built
+from a mesh file, the sha256 of that file (so a catalogue build can tell an
+up-to-date codebook from a stale one by reading the codebook alone).
+
+A saved file is a function of its contents only (header keys in a fixed
+order, no timestamps): the same mesh and encoder give the same bytes on any
+machine, in any process.
 """
 
 from __future__ import annotations
@@ -61,6 +67,9 @@ class Codebook:
     fingerprint: str
     """sha256 of the encoder that made ``codes``."""
     map_points: int = DEFAULT_MAP_POINTS
+    source_sha256: str | None = None
+    """sha256 of the mesh file's bytes it was built from (None: built from an
+    in-memory mesh or model, or saved by an older edgepose)."""
     timings: dict = field(default_factory=dict)
     """Build time per stage, seconds (empty for a loaded codebook)."""
     index: _core.ModelIndex = field(init=False, repr=False)
@@ -77,7 +86,7 @@ class Codebook:
         from safetensors.numpy import save
 
         tensors = self._tensors()
-        _write_atomically(Path(path), save(tensors, self._metadata(tensors)))
+        _write_atomically(Path(path), _canonical_header(save(tensors, self._metadata(tensors))))
 
     def _tensors(self) -> dict[str, np.ndarray]:
         """The stored arrays, in their file dtypes."""
@@ -102,10 +111,15 @@ class Codebook:
                     "centre": self.model.centre.tolist(),
                     "scale": self.model.scale,
                     "diameter": self.model.diameter,
-                    "spacing": self.model.spacing,
+                    # The core's parallel mean of neighbour distances varies in
+                    # its last float64 bits with thread scheduling; the maps use
+                    # it as float32, so store that and keep files reproducible.
+                    "spacing": float(np.float32(self.model.spacing)),
                 }
             ),
         }
+        if self.source_sha256 is not None:
+            metadata["source_sha256"] = self.source_sha256
         metadata["checksum"] = _checksum(tensors, metadata)
         return metadata
 
@@ -206,6 +220,7 @@ class Codebook:
                 centroids=tensors["view_centroids"].astype(np.float64),
                 fingerprint=metadata["encoder"],
                 map_points=int(metadata["map_points"]),
+                source_sha256=metadata.get("source_sha256"),
             )
         except KeyError as e:
             raise CodebookError(f"{name}: missing {e} in the codebook") from None
@@ -226,6 +241,9 @@ def build_codebook(
     Building is offline work, so the default encoder uses every core."""
     encoder = encoder or default_encoder(threads=os.cpu_count() or 1)
     t0 = time.perf_counter()
+    # Hashed before reading: if the file changes in between, the codebook
+    # records the older hash and a catalogue rebuild picks the change up.
+    source_sha256 = file_sha256(source) if isinstance(source, (str, os.PathLike)) and Path(source).is_file() else None
     model = source if isinstance(source, StandardModel) else load_model(source, n_points=n_points, scale=scale)
     t1 = time.perf_counter()
     viewpoints = fibonacci_viewpoints(views)
@@ -233,7 +251,9 @@ def build_codebook(
     t2 = time.perf_counter()
     codes, spectra = encoder.encode(maps.points)
     t3 = time.perf_counter()
-    built = Codebook(model, viewpoints, codes, spectra, maps.centroids, encoder.fingerprint, encoder.map_points)
+    built = Codebook(
+        model, viewpoints, codes, spectra, maps.centroids, encoder.fingerprint, encoder.map_points, source_sha256
+    )
     # Through the stored dtypes, so a built codebook and its saved copy give identical poses.
     tensors = built._tensors()
     stored = Codebook._from_parts(tensors, built._metadata(tensors), encoder, "new codebook")
@@ -253,6 +273,28 @@ _DTYPES = {
     "model_points": np.float32,
     "model_normals": np.float16,
 }
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """sha256 (hex) of a file's bytes, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _canonical_header(blob: bytes) -> bytes:
+    """A safetensors file with its JSON header rewritten with sorted keys.
+
+    safetensors writes ``__metadata__`` from a hash map, in an order that
+    changes from process to process; sorting makes the same codebook the same
+    bytes everywhere. The tensors' bytes and offsets are unchanged; the header
+    stays space-padded to a multiple of 8 bytes, as safetensors writes it."""
+    size = int.from_bytes(blob[:8], "little")
+    header = json.dumps(json.loads(blob[8 : 8 + size]), sort_keys=True, separators=(",", ":")).encode()
+    header += b" " * (-len(header) % 8)
+    return len(header).to_bytes(8, "little") + header + blob[8 + size :]
 
 
 def _checksum(tensors: dict[str, np.ndarray], metadata: dict[str, str]) -> str:
