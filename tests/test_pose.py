@@ -137,6 +137,16 @@ def test_bad_clouds_raise_clear_errors(drill):
         edgepose.estimate(np.array([["a", "b", "c"]] * 100), codebook)
 
 
+def test_search_and_refinement_settings_are_bounded(drill):
+    mesh, codebook = drill
+    cloud = render_view(mesh, seed=4).cloud
+    for bad in ({"k": 0}, {"k": len(codebook) + 1}, {"icp_iterations": -1}, {"icp_iterations": 10**9}):
+        with pytest.raises(ValueError, match="between"):
+            edgepose.estimate(cloud, codebook, **bad)
+    everything = edgepose.estimate(cloud, codebook, k=len(codebook))
+    assert len(everything.candidates) == len(codebook)
+
+
 def test_a_millimetre_cloud_is_reported(drill):
     mesh, codebook = drill
     cloud_mm = render_view(mesh, seed=3).cloud * 1000.0

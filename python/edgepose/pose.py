@@ -34,6 +34,8 @@ from edgepose.views import ray_alignment
 MAX_CLOUD_POINTS = 2048
 #: Points of the cloud used by ICP.
 ICP_POINTS = 1024
+#: ICP converges in tens of iterations; more is a caller's mistake, not a wish.
+MAX_ICP_ITERATIONS = 1000
 #: Keypoints (the first farthest-point samples of the map) used to verify candidates.
 KEYPOINTS = 32
 #: Distinct candidate poses refined by ICP (in parallel); the lowest fit wins. A
@@ -117,8 +119,10 @@ def estimate(
     encoder = encoder or default_encoder()
     if encoder.fingerprint != codebook.fingerprint:
         raise InvalidCloudError("the codebook was built by a different encoder than the one given")
-    if k < 1:
-        raise ValueError(f"k must be at least 1, got {k}")
+    if not 1 <= k <= len(codebook):
+        raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {k}")
+    if not 0 <= icp_iterations <= MAX_ICP_ITERATIONS:
+        raise ValueError(f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {icp_iterations}")
     model = codebook.model
     t0 = time.perf_counter()
 
