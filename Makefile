@@ -14,9 +14,10 @@ $(BIN)/maturin:
 	$(BIN)/python -m pip install --quiet "maturin>=1.8,<2"
 
 # The tests cover training and export too, so they need the `export` extra
-# (torch, CPU use only; a large download the first time).
+# (torch, CPU use only; a large download the first time), and catalogue
+# builds on a local Ray instance, so the `dist` extra (ray).
 build: $(BIN)/maturin
-	$(BIN)/maturin develop --release --quiet --extras test,export
+	$(BIN)/maturin develop --release --quiet --extras test,export,dist
 
 demo: build
 	$(BIN)/edgepose demo

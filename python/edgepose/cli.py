@@ -7,6 +7,7 @@ stderr and exit with status 1; usage errors exit with status 2.
 
 import json
 import sys
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Iterator, List, Optional
@@ -21,8 +22,6 @@ if TYPE_CHECKING:
 SHIPPED_DIR = Path(__file__).resolve().parent / "codebooks"
 #: The demo's object: a YCB mesh (CC BY 4.0) whose codebook and mesh ship with edgepose.
 DEMO_OBJECT = "power_drill"
-#: Mesh files ``build`` and ``eval`` pick up from a folder.
-MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
 
 EXAMPLES = """
 [bold]Examples[/bold] (units are metres; poses are T_cam_obj, camera frame as OpenCV)
@@ -214,6 +213,10 @@ def _matrix_text(matrix: "np.ndarray") -> str:
 # ----------------------------------------------------------------- build
 
 
+RAY_HELP = "Run one Ray task per object: on the cluster in RAY_ADDRESS, else on a Ray instance started on this machine (dist extra)."
+RAY_ADDRESS_HELP = "With --ray (implied): the Ray cluster to join, e.g. auto, host:6379 or ray://host:10001."
+
+
 @app.command()
 def build(
     meshes: Annotated[List[Path], typer.Argument(help="Mesh files, or folders of them (.ply .obj .stl .off .glb .gltf).")],
@@ -221,64 +224,77 @@ def build(
     views: Annotated[int, typer.Option(help="Viewpoints per codebook.")] = 2100,
     scale: Annotated[Optional[float], typer.Option(help="Mesh file units → metres (default: detect mm).")] = None,
     points: Annotated[int, typer.Option(help="Surface points of the standard model.")] = 4096,
+    force: Annotated[bool, typer.Option("--force", help="Rebuild codebooks that are up to date too (e.g. after changing --scale).")] = False,
+    ray: Annotated[bool, typer.Option("--ray", help=RAY_HELP)] = False,
+    ray_address: Annotated[Optional[str], typer.Option(help=RAY_ADDRESS_HELP)] = None,
+    cpus_per_task: Annotated[int, typer.Option(help="With --ray: CPUs each object's task reserves and uses.")] = 1,
+    retries: Annotated[int, typer.Option(help="Attempts after the first for an object that fails.")] = 2,
 ) -> None:
-    """Build a codebook for each mesh (seconds each): DIR/<mesh name>.codebook."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    """Build a codebook for each mesh (seconds each): DIR/<mesh name>.codebook.
+
+    Codebooks already up to date (same mesh sha256, encoder, views and points) are skipped, so rerunning an interrupted build resumes it. An object that fails is retried, then reported; the others are still built (exit status 1 if any failed). --ray runs one Ray task per object on a cluster (dist extra).
+    """
+    from rich.markup import escape
     from rich.table import Table
 
-    import edgepose
+    from edgepose.catalog import BuildSettings, build_catalog, find_meshes
 
     with _errors():
-        files = _mesh_files(meshes)
-        stems = [f.stem for f in files]
-        clashes = sorted({s for s in stems if stems.count(s) > 1})
-        if clashes:
-            raise Failure(f"two meshes would write the same codebook: {', '.join(clashes)}")
         if views < 16:
             raise Failure(f"--views must be at least 16, got {views}")
-    rows, failures = [], []
-    progress = Progress(TextColumn("{task.description:<24}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                        TimeElapsedColumn(), console=_stderr(), transient=True)
-    with progress:
-        task = progress.add_task("building", total=len(files))
-        for path in files:
-            progress.update(task, description=f"building {path.stem}")
-            target = out_dir / f"{path.stem}.codebook"
-            try:
-                codebook = edgepose.build_codebook(path, views=views, scale=scale, n_points=points)
-                codebook.save(target)
-            except edgepose.EdgePoseError as e:
-                failures.append(str(e))
-            else:
-                rows.append((path.stem, len(codebook), codebook.timings["total"], target.stat().st_size, target))
-            progress.advance(task)
+        files = find_meshes(meshes)
+        executor = _executor(ray or ray_address is not None, ray_address, cpus_per_task)
+    started = time.perf_counter()
+    with _catalog_progress("building", len(files)) as on_result, _errors():
+        results = build_catalog(files, out_dir, BuildSettings(views, points, scale), executor=executor,
+                                force=force, retries=retries, on_result=on_result)  # fmt: skip
+    wall = time.perf_counter() - started
     table = Table(title=f"codebooks in {out_dir}/")
-    for column, justify in (("object", "left"), ("views", "right"), ("build s", "right"), ("size MB", "right"), ("file", "left")):
+    for column, justify in (("object", "left"), ("status", "left"), ("views", "right"), ("build s", "right"),
+                            ("size MB", "right"), ("file", "left")):  # fmt: skip
         table.add_column(column, justify=justify)
-    for stem, n, seconds, size, target in rows:
-        table.add_row(stem, str(n), f"{seconds:.2f}", f"{size / 1e6:.2f}", target.name)
+    for r in results:
+        if r.failed:
+            table.add_row(r.name, "[red]failed[/red]", "", "", "", "")
+        else:
+            seconds = f"{r.seconds:.2f}" if r.status == "built" else ""
+            table.add_row(r.name, r.status, str(r.views), seconds, f"{r.bytes / 1e6:.2f}", Path(r.codebook).name)
     _stdout().print(table)
-    from rich.markup import escape
-
-    for message in failures:
-        _stderr().print(f"[red]error:[/red] {escape(message)}")
-    if failures:
+    failed = [r for r in results if r.failed]
+    counts = {status: sum(r.status == status for r in results) for status in ("built", "skipped")}
+    _stderr().print(f"{counts['built']} built, {counts['skipped']} up to date (skipped), {len(failed)} failed; "
+                    f"{len(results)} objects in {wall:.1f} s ({60 * len(results) / max(wall, 1e-9):.1f} objects/min"
+                    f"{', Ray' if executor is not None else ''})")  # fmt: skip
+    for r in failed:
+        _stderr().print(f"[red]error:[/red] {escape(r.error)} ({r.attempts} attempts)")
+    if failed:
         raise typer.Exit(1)
 
 
-def _mesh_files(paths: list[Path]) -> list[Path]:
-    files = []
-    for path in paths:
-        if path.is_dir():
-            found = sorted(p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES and p.is_file())
-            if not found:
-                raise Failure(f"{path}: no mesh files ({' '.join(MESH_SUFFIXES)})")
-            files.extend(found)
-        elif path.is_file():
-            files.append(path)
-        else:
-            raise Failure(f"{path}: no such file or folder")
-    return files
+def _executor(ray: bool, address: Optional[str], cpus_per_task: int):
+    """None (run locally) or a Ray executor."""
+    if not ray:
+        return None
+    from edgepose.catalog import RayExecutor
+
+    return RayExecutor(address, cpus_per_task=cpus_per_task)
+
+
+@contextmanager
+def _catalog_progress(verb: str, total: int):
+    """A progress bar on stderr; yields the callback that advances it per finished object."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    progress = Progress(TextColumn("{task.description:<28}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                        TimeElapsedColumn(), console=_stderr(), transient=True)  # fmt: skip
+    with progress:
+        task = progress.add_task(verb, total=total)
+
+        def on_result(result) -> None:
+            progress.update(task, description=f"{verb}: {result.name} {result.status}")
+            progress.advance(task)
+
+        yield on_result
 
 
 # ----------------------------------------------------------------- estimate
@@ -402,18 +418,22 @@ def evaluate(
     occluders: Annotated[int, typer.Option(help="Occluding rectangles per view.")] = 0,
     methods: Annotated[str, typer.Option(help="Comma-separated: edgepose, open3d, opencv-ppf (peers need the baselines extra).")] = "edgepose",
     symmetric: Annotated[Optional[List[str]], typer.Option(help="Object (file stem) judged with ADD-S in ADD(-S); repeatable. Default: the symmetric YCB objects.")] = None,
+    ray: Annotated[bool, typer.Option("--ray", help=RAY_HELP)] = False,
+    ray_address: Annotated[Optional[str], typer.Option(help=RAY_ADDRESS_HELP)] = None,
+    cpus_per_task: Annotated[int, typer.Option(help="With --ray: CPUs each object's task reserves.")] = 1,
 ) -> None:
     """Benchmark on rendered depth views of meshes, with known poses.
 
-    Prints per object: ADD-S and ADD(-S) below 0.1 × diameter, their AUC (0–10 cm), the median estimate latency and the preparation (codebook build) time.
+    Prints per object: ADD-S and ADD(-S) below 0.1 × diameter, their AUC (0–10 cm), the median estimate latency and the preparation (codebook build) time. --ray evaluates one object per Ray task (accuracy is the same; latencies then include the tasks' competition for the CPUs).
     """
+    from rich.markup import escape
     from rich.table import Table
 
-    from edgepose.eval.baselines import EdgePoseMethod, Open3DBaseline, OpenCVPPFBaseline
-    from edgepose.eval.benchmark import load_object, run_method, summarise
+    from edgepose.catalog import eval_methods, evaluate_catalog, find_meshes
+    from edgepose.eval.benchmark import MethodRun, summarise
+    from edgepose.eval.metrics import YCB_SYMMETRIC
 
-    constructors = {"edgepose": EdgePoseMethod, "open3d": Open3DBaseline, "opencv-ppf": OpenCVPPFBaseline}
-    err = _stderr()
+    constructors = eval_methods()
     with _errors():
         chosen = [m.strip() for m in methods.split(",") if m.strip()]
         unknown = [m for m in chosen if m not in constructors]
@@ -421,38 +441,48 @@ def evaluate(
             raise Failure(f"unknown methods {unknown}; choose from {', '.join(constructors)}")
         if views < 1:
             raise Failure(f"--views must be at least 1, got {views}")
-        files = _mesh_files(meshes)
-        objects = []
-        for k, path in enumerate(files):
-            err.print(f"rendering {views} views of {path.stem} …")
-            seeds = [seed * 100_000 + k * 1000 + i for i in range(views)]
-            is_symmetric = None if symmetric is None else path.stem in symmetric
-            objects.append(load_object(path, seeds, symmetric=is_symmetric, occluders=occluders))
-        runs = []
         for name in chosen:
             try:
-                method = constructors[name]()
+                constructors[name]()
             except ImportError as e:
                 raise Failure(f"{name} needs the baselines extra ({e})") from None
-            method.name = name
-            err.print(f"{name}: preparing and estimating …")
-            runs.append(run_method(method, objects))
+        files = find_meshes(meshes)
+        executor = _executor(ray or ray_address is not None, ray_address, cpus_per_task)
+    with _catalog_progress("evaluating", len(files)) as on_result, _errors():
+        results = evaluate_catalog(
+            files, lambda k: [seed * 100_000 + k * 1000 + i for i in range(views)], chosen,
+            symmetric=lambda stem: stem in (YCB_SYMMETRIC if symmetric is None else symmetric),
+            occluders=occluders, executor=executor, on_result=on_result,
+        )  # fmt: skip
+    evaluated = [r for r in results if not r.failed]
+    runs = [
+        MethodRun(name, {r.name: r.runs[name].prepare_s[r.name] for r in evaluated},
+                  [v for r in evaluated for v in r.runs[name].views])
+        for name in chosen
+    ]  # fmt: skip
+    symmetric_names = set(YCB_SYMMETRIC if symmetric is None else symmetric)
 
-    table = Table(title=f"{views} rendered views per object (seed {seed}, {occluders} occluders); correct = error < 0.1 × diameter")
-    for column in ("object", "sym.", "method", "ADD-S ok", "ADD(-S) ok", "AUC ADD-S", "AUC ADD(-S)", "median ms", "prepare s"):
-        table.add_column(column, justify="left" if column in ("object", "sym.", "method") else "right")
-    for obj in [*objects, None]:
-        for run in runs:
-            views_of = [v for v in run.views if obj is None or v.object == obj.name]
-            s = summarise(views_of)
-            prepare = run.prepare_s[obj.name] if obj is not None else sorted(run.prepare_s.values())[len(run.prepare_s) // 2]
-            table.add_row(
-                obj.name if obj is not None else "[bold]all[/bold]",
-                ("yes" if obj.symmetric else "no") if obj is not None else "",
-                run.name, f"{s.add_s_pass:.0f} %", f"{s.add_or_s_pass:.0f} %", f"{s.auc_add_s:.1f}",
-                f"{s.auc_add_or_s:.1f}", f"{s.median_ms:.1f}", f"{prepare:.2f}",
-            )  # fmt: skip
-    _stdout().print(table)
+    if evaluated:
+        table = Table(title=f"{views} rendered views per object (seed {seed}, {occluders} occluders); correct = error < 0.1 × diameter")
+        for column in ("object", "sym.", "method", "ADD-S ok", "ADD(-S) ok", "AUC ADD-S", "AUC ADD(-S)", "median ms", "prepare s"):
+            table.add_column(column, justify="left" if column in ("object", "sym.", "method") else "right")
+        for obj in [*[r.name for r in evaluated], None]:
+            for run in runs:
+                views_of = [v for v in run.views if obj is None or v.object == obj]
+                s = summarise(views_of)
+                prepare = run.prepare_s[obj] if obj is not None else sorted(run.prepare_s.values())[len(run.prepare_s) // 2]
+                table.add_row(
+                    obj if obj is not None else "[bold]all[/bold]",
+                    ("yes" if obj in symmetric_names else "no") if obj is not None else "",
+                    run.name, f"{s.add_s_pass:.0f} %", f"{s.add_or_s_pass:.0f} %", f"{s.auc_add_s:.1f}",
+                    f"{s.auc_add_or_s:.1f}", f"{s.median_ms:.1f}", f"{prepare:.2f}",
+                )  # fmt: skip
+        _stdout().print(table)
+    failed = [r for r in results if r.failed]
+    for r in failed:
+        _stderr().print(f"[red]error:[/red] {escape(r.error)} ({r.attempts} attempts)")
+    if failed:
+        raise typer.Exit(1)
 
 
 def main() -> None:
