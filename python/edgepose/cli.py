@@ -35,6 +35,8 @@ EXAMPLES = """
   [dim]# codebooks for one mesh or a folder of them (seconds each)[/dim]
   [cyan]edgepose build mug.ply -o codebooks/[/cyan]
   [cyan]edgepose build ../shared/data/ycb -o codebooks/[/cyan]
+  [dim]# a whole catalogue, one Ray task per object; a rerun skips what is up to date[/dim]
+  [cyan]edgepose build catalog/ -o codebooks/ --ray[/cyan]
 
   [dim]# a pose as JSON from a cloud (.ply/.pcd/.npy) ...[/dim]
   [cyan]edgepose estimate -c codebooks/mug.codebook cloud.ply[/cyan]
