@@ -9,8 +9,8 @@ depth cloud (../shared/DESIGN.md, step 7).
 5. verify each candidate pose by how close the map's keypoints land to the
    model (Rust kd-tree); the closest wins;
 6. translation from the centroids; unless ``refine=False``, point-to-plane
-   ICP against the model (Rust) from the best few distinct candidates in
-   parallel, keeping the best fit (this tells a near-symmetric object's
+   ICP against the model (Rust) from the best few distinct candidates,
+   keeping the best fit (this tells a near-symmetric object's
    turned-over pose from the true one).
 """
 
@@ -38,7 +38,7 @@ ICP_POINTS = 1024
 MAX_ICP_ITERATIONS = 1000
 #: Keypoints (the first farthest-point samples of the map) used to verify candidates.
 KEYPOINTS = 32
-#: Distinct candidate poses refined by ICP (in parallel); the lowest fit wins. A
+#: Distinct candidate poses refined by ICP; the lowest fit wins. A
 #: near-symmetric object (a bottle turned about its axis) verifies almost equally
 #: well either way up; the ICP fit of each hypothesis tells them apart.
 HYPOTHESES = 3

@@ -63,9 +63,13 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
 }
 
 /// [`map_neighbours`] of every map in `points` (maps of `m` points each,
-/// flattened map-major), in parallel: `maps × centres × k` indices.
+/// flattened map-major), in parallel over maps: `maps × centres × k` indices.
 pub fn neighbours_of_maps(points: &[Point3], m: usize, centres: usize, k: usize) -> Vec<u32> {
     assert!(m > 0 && points.len().is_multiple_of(m), "points must hold whole maps of {m} points");
+    if points.len() == m {
+        // One map (a query): waking the thread pool would cost more than the work.
+        return map_neighbours(points, centres, k);
+    }
     let per_map: Vec<Vec<u32>> = points.par_chunks(m).map(|map| map_neighbours(map, centres, k)).collect();
     per_map.concat()
 }

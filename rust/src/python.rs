@@ -337,7 +337,7 @@ impl PyModelIndex {
 
     /// Point-to-plane ICP of `cloud` (camera frame) from each start pose
     /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)), the
-    /// starts in parallel: `(R (H, 3, 3), t (H, 3), iterations (H,),
+    /// one after another: `(R (H, 3, 3), t (H, 3), iterations (H,),
     /// converged (H,), inliers (H,), rmse (H,))`.
     fn refine<'py>(
         &self,

@@ -6,7 +6,6 @@ use std::num::NonZero;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::{Matrix3, Matrix6, Rotation3, Vector3, Vector6};
-use rayon::prelude::*;
 
 use crate::Point3;
 
@@ -76,12 +75,14 @@ impl ModelIndex {
         self.tree.nearest_n::<SquaredEuclidean>(p, k).into_iter().map(|nn| nn.item as usize).collect()
     }
 
-    /// [`refine`](Self::refine) from each of several `starts`, in parallel:
-    /// one result per start, in order. Refining a few distinct hypotheses
-    /// and keeping the best fit resolves near-symmetric objects whose
-    /// turned-over pose verifies almost as well as the true one.
+    /// [`refine`](Self::refine) from each of several `starts`: one result per
+    /// start, in order. Refining a few distinct hypotheses and keeping the
+    /// best fit resolves near-symmetric objects whose turned-over pose
+    /// verifies almost as well as the true one. Runs in the calling thread:
+    /// a few sub-millisecond ICPs gain nothing from a thread pool, and
+    /// waking one costs milliseconds on a busy CPU.
     pub fn refine_each(&self, cloud: &[Point3], starts: &[Pose], max_iterations: usize, max_distance: f64) -> Vec<IcpResult> {
-        starts.par_iter().map(|start| self.refine(cloud, *start, max_iterations, max_distance)).collect()
+        starts.iter().map(|start| self.refine(cloud, *start, max_iterations, max_distance)).collect()
     }
 
     /// Point-to-plane ICP of an observed `cloud` (camera frame, metres) onto
