@@ -270,3 +270,11 @@ def test_local_executor_runs_jobs_in_order(catalogue, tmp_path):
     jobs = [(m.stem, {"mesh": str(m), "out_dir": str(tmp_path), "settings": BuildSettings(views=64)})
             for m in find_meshes([catalogue])]  # fmt: skip
     assert [r.name for r in LocalExecutor().map(build_object, jobs)] == ["box", "bracket", "cylinder"]
+
+
+def test_cli_eval_reports_a_broken_mesh_by_its_file(tmp_path):
+    (tmp_path / "broken.obj").write_text("v 0 0 0\nf 1 1 1\n")
+    out = run("eval", str(tmp_path / "broken.obj"), "--views", "1")
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    assert f"error: {tmp_path / 'broken.obj'}: " in out.stderr and "zero surface area" in out.stderr
+    assert "(3 attempts)" in out.stderr and "ADD-S" not in out.stdout

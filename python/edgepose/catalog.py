@@ -160,7 +160,7 @@ def build_object(
         book.save(target)
         return ObjectResult(mesh.stem, "built", 0.0, str(target), target.stat().st_size, len(book))
 
-    return _attempt(mesh.stem, job, retries)
+    return _attempt(mesh, job, retries)
 
 
 def evaluate_object(
@@ -188,7 +188,7 @@ def evaluate_object(
             runs[name] = run_method(method, [obj])
         return ObjectResult(mesh.stem, "evaluated", 0.0, views=len(seeds), runs=runs)
 
-    return _attempt(mesh.stem, job, retries)
+    return _attempt(mesh, job, retries)
 
 
 def eval_methods() -> dict[str, Callable[[], Any]]:
@@ -198,8 +198,9 @@ def eval_methods() -> dict[str, Callable[[], Any]]:
     return {"edgepose": EdgePoseMethod, "open3d": Open3DBaseline, "opencv-ppf": OpenCVPPFBaseline}
 
 
-def _attempt(name: str, job: Callable[[], ObjectResult], retries: int) -> ObjectResult:
-    """Run ``job`` up to ``1 + retries`` times; the last error becomes a failed result."""
+def _attempt(mesh: Path, job: Callable[[], ObjectResult], retries: int) -> ObjectResult:
+    """Run ``job`` up to ``1 + retries`` times; the last error (naming the mesh
+    file) becomes a failed result."""
     t0 = time.perf_counter()
     attempts, error = 0, ""
     while attempts <= max(retries, 0):
@@ -207,11 +208,12 @@ def _attempt(name: str, job: Callable[[], ObjectResult], retries: int) -> Object
         try:
             result = job()
         except Exception as e:  # one object's failure is a result, never the end of the run
-            error = str(e) if isinstance(e, EdgePoseError) else f"{name}: {type(e).__name__}: {e}"
+            error = str(e) if isinstance(e, EdgePoseError) else f"{type(e).__name__}: {e}"
+            error = error if str(mesh) in error else f"{mesh}: {error}"
             continue
         result.seconds, result.attempts = time.perf_counter() - t0, attempts
         return result
-    return ObjectResult(name, "failed", time.perf_counter() - t0, error=error, attempts=attempts)
+    return ObjectResult(mesh.stem, "failed", time.perf_counter() - t0, error=error, attempts=attempts)
 
 
 # ----------------------------------------------------------------- executors
