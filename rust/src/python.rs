@@ -79,6 +79,16 @@ fn rotations_from(array: &PyReadonlyArray3<'_, f64>) -> PyResult<Vec<Rotation>> 
     Ok(flat.chunks_exact(9).map(Rotation::from_row_slice).collect())
 }
 
+/// Poses (model → camera) from `rotations` (C, 3, 3) and `translations` (C, 3).
+fn poses_from(rotations: &PyReadonlyArray3<'_, f64>, translations: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Pose>> {
+    let r = rotations_from(rotations)?;
+    let t = triples(translations, "translations")?;
+    if r.len() != t.len() {
+        return Err(PyValueError::new_err("one translation per rotation"));
+    }
+    Ok(r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect())
+}
+
 fn points_array<'py>(py: Python<'py>, points: Vec<Point3>) -> Bound<'py, PyArray2<f32>> {
     let n = points.len();
     Array::from_shape_vec((n, 3), points.into_flattened()).expect("n × 3 elements").into_pyarray(py)
@@ -325,19 +335,14 @@ impl PyModelIndex {
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         guarded(|| {
             let k = triples(&keypoints, "keypoints")?;
-            let r = rotations_from(&rotations)?;
-            let t = triples(&translations, "translations")?;
-            if r.len() != t.len() {
-                return Err(PyValueError::new_err("one translation per rotation"));
-            }
-            let poses: Vec<Pose> = r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect();
+            let poses = poses_from(&rotations, &translations)?;
             Ok(PyArray1::from_vec(py, py.detach(|| search::verify(&self.inner, k, &poses))))
         })
     }
 
     /// Point-to-plane ICP of `cloud` (camera frame) from each start pose
-    /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)), the
-    /// one after another: `(R (H, 3, 3), t (H, 3), iterations (H,),
+    /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)), one
+    /// after another: `(R (H, 3, 3), t (H, 3), iterations (H,),
     /// converged (H,), inliers (H,), rmse (H,))`.
     fn refine<'py>(
         &self,
@@ -350,12 +355,7 @@ impl PyModelIndex {
     ) -> PyResult<Bound<'py, PyAny>> {
         guarded(|| {
             let c = triples(&cloud, "cloud")?;
-            let r = rotations_from(&rotations)?;
-            let t = triples(&translations, "translations")?;
-            if r.len() != t.len() {
-                return Err(PyValueError::new_err("one translation per rotation"));
-            }
-            let starts: Vec<Pose> = r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect();
+            let starts = poses_from(&rotations, &translations)?;
             let out = py.detach(|| self.inner.refine_each(c, &starts, max_iterations, max_distance));
             let h = out.len();
             let rot: Vec<f64> = out.iter().flat_map(|o| o.pose.rotation.transpose().as_slice().to_vec()).collect();
