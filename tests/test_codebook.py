@@ -39,6 +39,15 @@ def test_save_load_round_trip_is_exact_and_small(drill_codebook, tmp_path):
     assert loaded.model.diameter == drill_codebook.model.diameter
 
 
+def test_saved_codebooks_are_readable_by_others_and_keep_their_mode(drill_codebook, tmp_path):
+    path = tmp_path / "drill.codebook"
+    drill_codebook.save(path)
+    assert path.stat().st_mode & 0o777 == 0o644
+    path.chmod(0o640)
+    drill_codebook.save(path)
+    assert path.stat().st_mode & 0o777 == 0o640
+
+
 def test_saving_over_a_good_file_is_atomic(drill_codebook, tmp_path, monkeypatch):
     path = tmp_path / "drill.codebook"
     drill_codebook.save(path)

@@ -321,8 +321,12 @@ def _metadata(blob: bytes) -> dict[str, str]:
 
 def _write_atomically(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
+    # mkstemp makes the file private (0600); a codebook keeps the mode of the
+    # file it replaces, or is readable by all like any other data file.
+    mode = stat.S_IMODE(path.stat().st_mode) if path.is_file() else 0o644
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
