@@ -202,15 +202,17 @@ pub fn mean_nearest_neighbour_distance(points: &[Point3]) -> f64 {
     }
     let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(points);
     let two = NonZero::new(2).expect("2 is non-zero");
-    let total: f64 = points
+    let distances: Vec<f64> = points
         .par_iter()
         .map(|p| {
             let found = tree.nearest_n::<SquaredEuclidean>(p, two);
             // The nearest hit is the point itself (distance 0), or a duplicate.
             found.last().map_or(0.0, |nn| (nn.distance as f64).sqrt())
         })
-        .sum();
-    total / points.len() as f64
+        .collect();
+    // Summed in order, not by rayon's reduction tree (which depends on how the
+    // work was split): the same model gives the same spacing to the last bit.
+    distances.iter().sum::<f64>() / points.len() as f64
 }
 
 fn normalized(v: Point3) -> Point3 {
@@ -284,6 +286,20 @@ pub(crate) mod tests {
         // Six faces of area 0.01 m² and 1024 points: spacing ≈ sqrt(0.06/1024).
         let expected = (0.06f64 / 1024.0).sqrt();
         assert!(model.spacing > 0.6 * expected && model.spacing < 1.4 * expected, "{}", model.spacing);
+    }
+
+    #[test]
+    fn spacing_does_not_depend_on_the_thread_count() {
+        let (v, f) = cube_mesh(0.05);
+        let points = StandardModel::from_mesh(&v, &f, 4096, 5).unwrap().points;
+        let with = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| mean_nearest_neighbour_distance(&points))
+        };
+        let one = with(1);
+        for threads in [2, 3, 7] {
+            assert_eq!(with(threads).to_bits(), one.to_bits(), "{threads} threads");
+        }
     }
 
     #[test]
