@@ -6,20 +6,25 @@ BIN := $(VENV)/bin
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: demo test build bench wheel train codebooks clean
+.PHONY: demo test install build bench wheel train codebooks clean
 
 $(BIN)/maturin:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet "maturin>=1.8,<2"
 
-# The tests cover training and export too, so they need the `export` extra
-# (torch, CPU use only; a large download the first time), and catalogue
-# builds on a local Ray instance, so the `dist` extra (ray).
+# The package alone, as `pip install edgepose` gives it: enough for the demo,
+# building codebooks and estimating poses.
+install: $(BIN)/maturin
+	$(BIN)/maturin develop --release --quiet
+
+# Everything the tests and training need too: they cover training and export,
+# so the `export` extra (torch, CPU use only; a large download the first time),
+# and catalogue builds on a local Ray instance, so the `dist` extra (ray).
 build: $(BIN)/maturin
 	$(BIN)/maturin develop --release --quiet --extras test,export,dist
 
-demo: build
+demo: install
 	$(BIN)/edgepose demo
 
 test: build
@@ -28,7 +33,7 @@ test: build
 
 # The shipped example codebooks (codebooks/ links to python/edgepose/codebooks/,
 # so they install with the package); rebuild them after the encoder changes.
-codebooks: build
+codebooks: install
 	$(BIN)/edgepose build ../shared/data/ycb -o codebooks
 
 bench: build
