@@ -147,6 +147,27 @@ def test_search_and_refinement_settings_are_bounded(drill):
     assert len(everything.candidates) == len(codebook)
 
 
+def test_an_encoder_other_than_the_codebooks_is_refused(drill, tmp_path):
+    import hashlib
+    import json
+    import shutil
+
+    onnx = pytest.importorskip("onnx")
+    from edgepose.encoder import MODELS_DIR, Encoder
+
+    mesh, codebook = drill
+    shutil.copytree(MODELS_DIR, tmp_path / "models")
+    graph = onnx.load(str(tmp_path / "models" / "encoder.onnx"))
+    graph.doc_string = "another encoder"
+    onnx.save(graph, str(tmp_path / "models" / "encoder.onnx"))
+    manifest = json.loads((tmp_path / "models" / "manifest.json").read_text())
+    manifest["files"]["encoder.onnx"] = hashlib.sha256((tmp_path / "models" / "encoder.onnx").read_bytes()).hexdigest()
+    (tmp_path / "models" / "manifest.json").write_text(json.dumps(manifest))
+    other = Encoder(tmp_path / "models")
+    with pytest.raises(edgepose.CodebookError, match="different encoder"):
+        edgepose.estimate(render_view(mesh, seed=2).cloud, codebook, encoder=other)
+
+
 def test_a_millimetre_cloud_is_reported(drill):
     mesh, codebook = drill
     cloud_mm = render_view(mesh, seed=3).cloud * 1000.0

@@ -23,9 +23,8 @@ import numpy as np
 
 from edgepose import _core
 from edgepose.cloud import clean_cloud
-from edgepose.codebook import Codebook
+from edgepose.codebook import Codebook, CodebookError
 from edgepose.encoder import Encoder, default_encoder
-from edgepose.errors import InvalidCloudError
 from edgepose.maps import normalize_to_map
 from edgepose.views import ray_alignment
 
@@ -118,7 +117,10 @@ def estimate(
     gives the same pose."""
     encoder = encoder or default_encoder()
     if encoder.fingerprint != codebook.fingerprint:
-        raise InvalidCloudError("the codebook was built by a different encoder than the one given")
+        raise CodebookError(
+            f"the codebook was built by encoder {codebook.fingerprint[:12]}…, a different encoder than the "
+            f"one given ({encoder.fingerprint[:12]}…); rebuild the codebook with it"
+        )
     if not 1 <= k <= len(codebook):
         raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {k}")
     if not 0 <= icp_iterations <= MAX_ICP_ITERATIONS:

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from edgepose.eval.baselines import NO_POSE, PoseMethod
-from edgepose.eval.metrics import YCB_SYMMETRIC, auc, pose_errors
+from edgepose.eval.metrics import YCB_SYMMETRIC, PoseErrors, auc, pose_errors
 from edgepose.eval.render import render_view
 
 if TYPE_CHECKING:
@@ -50,14 +50,7 @@ class ViewResult:
     seed: int
     points: int
     latency_s: float
-    add: float
-    add_s: float
-    add_or_s: float
-    rotation_deg: float
-    translation_mm: float
-    diameter: float
-    correct_add_s: bool
-    correct_add_or_s: bool
+    errors: PoseErrors
     score: float
     T_est: np.ndarray
     error: str
@@ -139,7 +132,6 @@ def run_method(
         done: list[ViewResult] = []
         for i, (cloud, T_gt, seed) in enumerate(zip(obj.clouds, obj.poses, obj.seeds)):
             T_est, latency, error = timed_estimate(method, cloud)
-            e = pose_errors(obj.points, T_est, T_gt, obj.diameter, obj.symmetric)
             last = getattr(method, "last", None)
             result = ViewResult(
                 method=name,
@@ -148,14 +140,7 @@ def run_method(
                 seed=seed,
                 points=len(cloud),
                 latency_s=latency,
-                add=e.add,
-                add_s=e.add_s,
-                add_or_s=e.add_or_s,
-                rotation_deg=e.rotation_deg,
-                translation_mm=e.translation_mm,
-                diameter=e.diameter,
-                correct_add_s=e.correct_add_s,
-                correct_add_or_s=e.correct_add_or_s,
+                errors=pose_errors(obj.points, T_est, T_gt, obj.diameter, obj.symmetric),
                 score=float(getattr(last, "score", 0.0)) if not error else 0.0,
                 T_est=T_est,
                 error=error,
@@ -188,8 +173,8 @@ def summarise(views: list[ViewResult]) -> Summary:
         views=len(views),
         add_s_pass=percent(views, "correct_add_s"),
         add_or_s_pass=percent(views, "correct_add_or_s"),
-        auc_add_s=100 * auc(np.array([v.add_s for v in views])),
-        auc_add_or_s=100 * auc(np.array([v.add_or_s for v in views])),
+        auc_add_s=100 * auc(np.array([v.errors.add_s for v in views])),
+        auc_add_or_s=100 * auc(np.array([v.errors.add_or_s for v in views])),
         median_ms=float(np.median(latency)),
         p90_ms=float(np.percentile(latency, 90)),
         failures=sum(bool(v.error) for v in views),
@@ -197,5 +182,5 @@ def summarise(views: list[ViewResult]) -> Summary:
 
 
 def percent(views: list[ViewResult], field: str) -> float:
-    """Percent of ``views`` whose boolean ``field`` is true (0 for none)."""
-    return 100.0 * sum(getattr(v, field) for v in views) / max(len(views), 1)
+    """Percent of ``views`` whose boolean :class:`PoseErrors` ``field`` is true (0 for none)."""
+    return 100.0 * sum(getattr(v.errors, field) for v in views) / max(len(views), 1)
