@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import edgepose
-from edgepose.model import _read_mesh
+from edgepose.model import read_mesh
 
 YCB = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycb"
 
@@ -57,8 +57,8 @@ def main() -> None:
     print(f"{'object':<16} {'read mesh':>10} {'model':>8} {'maps':>8} {'per view':>9} {'numpy/view':>11} {'speed-up':>9}")
     map_times = []
     for path in sorted(YCB.glob("*.ply")):
-        read = median_seconds(lambda: _read_mesh(path), args.repeats)
-        mesh = _read_mesh(path)
+        read = median_seconds(lambda: read_mesh(path), args.repeats)
+        mesh = read_mesh(path)
         build = median_seconds(lambda: edgepose.load_model(mesh), args.repeats)
         model = edgepose.load_model(mesh)
         maps = median_seconds(lambda: edgepose.compute_maps(model, views, args.map_points), args.repeats)

@@ -28,7 +28,7 @@ from hypothesis import given, settings  # noqa: E402
 
 import edgepose  # noqa: E402
 from edgepose.eval import render_view  # noqa: E402
-from edgepose.model import _read_mesh  # noqa: E402
+from edgepose.model import read_mesh  # noqa: E402
 
 
 def rss_mb() -> float:
@@ -43,7 +43,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=200, help="examples per hypothesis run")
     args = parser.parse_args()
 
-    mesh = _read_mesh(args.mesh)
+    mesh = read_mesh(args.mesh)
     codebook = edgepose.build_codebook(mesh)
     cloud = render_view(mesh, seed=2).cloud
     workdir = Path(tempfile.mkdtemp(prefix="edgepose-fuzz-"))

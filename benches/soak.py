@@ -23,7 +23,7 @@ import numpy as np
 
 import edgepose
 from edgepose.eval import render_view
-from edgepose.model import _read_mesh
+from edgepose.model import read_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,7 +43,7 @@ def main() -> int:
     parser.add_argument("--mesh", type=Path, default=ROOT.parent / "shared" / "data" / "ycb" / "power_drill.ply")
     args = parser.parse_args()
 
-    mesh = _read_mesh(args.mesh)
+    mesh = read_mesh(args.mesh)
     codebook = edgepose.build_codebook(mesh)
     clouds = [render_view(mesh, seed=s).cloud for s in range(args.views)]
 

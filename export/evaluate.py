@@ -28,7 +28,7 @@ import numpy as np
 import edgepose
 from edgepose.encoder import MODELS_DIR, Encoder
 from edgepose.eval import YCB_SYMMETRIC, add_s, render_view
-from edgepose.model import _read_mesh
+from edgepose.model import read_mesh
 from edgepose.views import ray_alignment
 
 YCB = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycb"
@@ -53,7 +53,7 @@ def angle_deg(a: float, b: float) -> float:
 
 
 def evaluate_object(encoder: Encoder, path: Path, queries: int, seed: int) -> dict:
-    mesh = _read_mesh(path)
+    mesh = read_mesh(path)
     model = edgepose.load_model(mesh)
     views = edgepose.fibonacci_viewpoints(2100)
     codes, spectra = encoder.encode(edgepose.compute_maps(model, views).points)

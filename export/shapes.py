@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 
 import edgepose
-from edgepose.model import _read_mesh
+from edgepose.model import read_mesh
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: Object diameters drawn for training shapes, metres (household objects).
@@ -58,7 +58,7 @@ def build_models(count_procedural: int, seed: int, n_points: int = 4096, limit: 
     meshes: list[trimesh.Trimesh] = []
     for path in shared_mesh_paths()[:limit]:
         try:
-            meshes.append(_read_mesh(path))
+            meshes.append(read_mesh(path))
         except edgepose.EdgePoseError as e:
             print(f"skipping unusable training mesh: {e}")
     meshes += [procedural_mesh(rng) for _ in range(count_procedural)]

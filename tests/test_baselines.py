@@ -20,7 +20,7 @@ from edgepose.eval.baselines import (  # noqa: E402
     OpenCVPPFBaseline,
     PoseMethod,
 )
-from edgepose.model import _read_mesh  # noqa: E402
+from edgepose.model import read_mesh  # noqa: E402
 
 SEEDS = (0, 1, 2)
 #: Moves the mesh origin well away from the object, so a pose returned in the
@@ -32,7 +32,7 @@ ORIGIN_SHIFT = np.array([0.2, -0.1, 0.1])
 def drill(ycb_dir: Path):
     """The power drill (asymmetric), its origin shifted, its metric points
     (mesh frame, metres) and diameter, and three rendered views."""
-    mesh = _read_mesh(ycb_dir / "power_drill.ply")
+    mesh = read_mesh(ycb_dir / "power_drill.ply")
     mesh.apply_translation(ORIGIN_SHIFT)
     model = edgepose.load_model(mesh)
     points = model.points.astype(np.float64) + model.centre

@@ -46,7 +46,7 @@ def box_depth(T_cam_obj: np.ndarray, extents: np.ndarray, camera: Camera) -> np.
 
 @pytest.fixture(scope="module")
 def mustard(ycb_dir) -> trimesh.Trimesh:
-    return edgepose.model._read_mesh(ycb_dir / "mustard_bottle.ply")
+    return edgepose.model.read_mesh(ycb_dir / "mustard_bottle.ply")
 
 
 def test_camera_matrix():

@@ -27,7 +27,7 @@ from hypothesis.extra import numpy as hnp
 
 import edgepose
 from edgepose.eval import render_view
-from edgepose.model import _read_mesh
+from edgepose.model import read_mesh
 
 EXAMPLES = int(os.environ.get("EDGEPOSE_FUZZ_EXAMPLES", "60"))
 #: A single input taking longer than this is a hang, not slowness (an estimate takes milliseconds).
@@ -177,7 +177,7 @@ def check_estimate(cloud: object, codebook: edgepose.Codebook) -> str:
 
 @pytest.fixture(scope="module")
 def drill(ycb_dir):
-    mesh = _read_mesh(ycb_dir / "power_drill.ply")
+    mesh = read_mesh(ycb_dir / "power_drill.ply")
     return mesh, edgepose.build_codebook(mesh)
 
 

@@ -25,7 +25,7 @@ def test_ycb_mesh_model_matches_reference_geometry(ycb_dir, name):
     # Scale maps the farthest point onto the unit sphere.
     assert model.scale * np.linalg.norm(model.points, axis=1).max() == pytest.approx(1.0, rel=1e-5)
     # Against the mesh itself: diameter close to the hull's, points on the surface.
-    tri = edgepose.model._read_mesh(path)
+    tri = edgepose.model.read_mesh(path)
     hull_diameter = pdist(tri.convex_hull.vertices).max()
     assert model.diameter == pytest.approx(hull_diameter, rel=0.02)
     # Brute-force point-to-triangle distance for a subset: samples lie on the surface.
@@ -53,7 +53,7 @@ def test_every_mesh_format_loads_to_the_same_model(tmp_path, ext):
 
 def test_millimetre_files_are_detected_or_scaled_explicitly(tmp_path, ycb_dir):
     metres = edgepose.load_model(ycb_dir / "banana.ply")
-    mesh = edgepose.model._read_mesh(ycb_dir / "banana.ply")
+    mesh = edgepose.model.read_mesh(ycb_dir / "banana.ply")
     mesh.apply_scale(1000.0)
     path = tmp_path / "banana_mm.stl"
     mesh.export(path)

@@ -9,12 +9,12 @@ import pytest
 
 import edgepose
 from edgepose.eval import pose_errors, render_view
-from edgepose.model import _read_mesh
+from edgepose.model import read_mesh
 
 
 @pytest.fixture(scope="module")
 def drill(ycb_dir):
-    mesh = _read_mesh(ycb_dir / "power_drill.ply")
+    mesh = read_mesh(ycb_dir / "power_drill.ply")
     return mesh, edgepose.build_codebook(mesh)
 
 
@@ -55,7 +55,7 @@ def test_turned_over_poses_of_a_near_symmetric_object_are_told_apart(ycb_dir):
     # its axis: the best-verified candidate is often the turned-over pose (a
     # 66 mm ADD error). Refining several distinct hypotheses and keeping the
     # best fit must recover the true one.
-    mesh = _read_mesh(ycb_dir / "mustard_bottle.ply")
+    mesh = read_mesh(ycb_dir / "mustard_bottle.ply")
     codebook = edgepose.build_codebook(mesh)
     seeds = range(500, 512)
     refined = [errors(edgepose.estimate(render_view(mesh, seed=s).cloud, codebook), render_view(mesh, seed=s), codebook)

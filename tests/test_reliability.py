@@ -26,12 +26,12 @@ from edgepose import _core
 from edgepose.cloud import MIN_POINTS, as_cloud
 from edgepose.errors import InternalError
 from edgepose.eval import pose_errors, render_view
-from edgepose.model import _read_mesh
+from edgepose.model import read_mesh
 
 
 @pytest.fixture(scope="module")
 def drill(ycb_dir):
-    mesh = _read_mesh(ycb_dir / "power_drill.ply")
+    mesh = read_mesh(ycb_dir / "power_drill.ply")
     return mesh, edgepose.build_codebook(mesh)
 
 

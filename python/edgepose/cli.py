@@ -151,7 +151,7 @@ def demo(
 
     import edgepose
     from edgepose.eval import YCB_SYMMETRIC, pose_errors, render_view
-    from edgepose.model import _read_mesh, detect_scale
+    from edgepose.model import read_mesh, detect_scale
     from edgepose.viz import Frame, recorder, save_result_png
 
     out = _stdout()
@@ -159,7 +159,7 @@ def demo(
         if mesh is None:
             name, mesh_path = DEMO_OBJECT, SHIPPED_DIR / f"{DEMO_OBJECT}.ply"
             codebook_path = SHIPPED_DIR / f"{DEMO_OBJECT}.codebook"
-            triangles = _read_mesh(mesh_path)
+            triangles = read_mesh(mesh_path)
             try:
                 codebook = edgepose.Codebook.load(codebook_path)
             except edgepose.CodebookError as e:
@@ -167,7 +167,7 @@ def demo(
             origin = f"shipped codebook {codebook_path.name}, {len(codebook)} views"
         else:
             name, mesh_path = mesh.stem, mesh
-            triangles = _read_mesh(mesh_path)
+            triangles = read_mesh(mesh_path)
             triangles.apply_scale(scale or detect_scale(float(np.ptp(triangles.vertices, axis=0).max())))
             codebook = edgepose.build_codebook(triangles, views=views, scale=1.0)
             t = codebook.timings

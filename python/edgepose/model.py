@@ -85,7 +85,7 @@ def load_model(
     """
     import trimesh
 
-    mesh = source if isinstance(source, trimesh.Trimesh) else _read_mesh(source)
+    mesh = source if isinstance(source, trimesh.Trimesh) else read_mesh(source)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces)
     if len(vertices) == 0 or len(faces) == 0:
@@ -161,8 +161,9 @@ def _checked(model: StandardModel, name: str) -> StandardModel:
     return model
 
 
-def _read_mesh(path: str | os.PathLike) -> "trimesh.Trimesh":  # noqa: F821
-    """Triangles of every geometry in a mesh file, in the file's frame.
+def read_mesh(path: str | os.PathLike) -> "trimesh.Trimesh":  # noqa: F821
+    """A mesh file (obj, ply, stl, glb, off, …) as one ``trimesh.Trimesh``:
+    the triangles of every geometry, in the file's frame and units.
 
     Geometry only: materials and textures are ignored (so no image library is
     needed), and multi-part files (glb scenes) are merged with their node

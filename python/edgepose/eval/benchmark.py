@@ -91,11 +91,11 @@ def load_object(
     ``symmetric`` defaults to membership of :data:`YCB_SYMMETRIC` by name."""
     import trimesh
 
-    from edgepose.model import _read_mesh, detect_scale, load_model
+    from edgepose.model import read_mesh, detect_scale, load_model
 
     if not isinstance(mesh, trimesh.Trimesh):
         name = name or Path(mesh).stem
-        mesh = _read_mesh(mesh)
+        mesh = read_mesh(mesh)
         scale = detect_scale(float(np.ptp(mesh.vertices, axis=0).max()))
         if scale != 1.0:
             mesh.apply_scale(scale)
