@@ -9,6 +9,10 @@ use nalgebra::{Matrix3, Matrix6, Rotation3, Vector3, Vector6};
 
 use crate::Point3;
 
+/// ICP has converged when an update's rotation (radians) and translation
+/// (metres) together move less than this: 10 µm, far below depth noise.
+pub const CONVERGED: f64 = 1e-5;
+
 /// The model's points and normals with a kd-tree over the points (model
 /// frame, metres). Immutable, so many threads may query it at once.
 pub struct ModelIndex {
@@ -89,7 +93,7 @@ impl ModelIndex {
     /// the model, starting from `initial` (model → camera). Pairs farther
     /// than `max_distance` metres, or than 3× the median pair distance, are
     /// ignored. Stops after `max_iterations` or when an update moves less
-    /// than 1e-6 (radians + metres).
+    /// than [`CONVERGED`].
     pub fn refine(&self, cloud: &[Point3], initial: Pose, max_iterations: usize, max_distance: f64) -> IcpResult {
         let mut to_model = initial.inverse();
         let mut result = IcpResult { pose: initial, iterations: 0, converged: false, inliers: 0, rmse: f64::NAN };
@@ -146,7 +150,7 @@ impl ModelIndex {
                 inliers,
                 rmse: (sum_sq / inliers.max(1) as f64).sqrt(),
             };
-            if x.norm() < 1e-6 {
+            if x.norm() < CONVERGED {
                 result.converged = true;
                 break;
             }
