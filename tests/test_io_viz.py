@@ -57,6 +57,22 @@ def test_sixteen_bit_png_round_trip(tmp_path, rng):
     np.testing.assert_array_equal(io.read_mask_png(tmp_path / "m.png"), mask)
 
 
+def test_masks_with_alpha_or_a_palette_mark_only_the_object(tmp_path):
+    from PIL import Image
+
+    mask = np.zeros((20, 30), bool)
+    mask[5:12, 8:20] = True
+    grey = (mask * 255).astype(np.uint8)
+    rgba = np.dstack([grey, grey, grey, np.full_like(grey, 255)])  # opaque everywhere
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "rgba.png")
+    Image.fromarray(np.dstack([grey, np.full_like(grey, 255)]), "LA").save(tmp_path / "la.png")
+    palette = Image.fromarray(mask.astype(np.uint8), "P")
+    palette.putpalette([0, 0, 0, 255, 255, 255])  # index 0 black background, 1 white object
+    palette.save(tmp_path / "palette.png")
+    for name in ("rgba.png", "la.png", "palette.png"):
+        np.testing.assert_array_equal(io.read_mask_png(tmp_path / name), mask, err_msg=name)
+
+
 def test_intrinsics_from_numbers_and_json(tmp_path):
     K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
     np.testing.assert_array_equal(io.parse_intrinsics("572.4 0 325.3 0 573.6 242 0 0 1"), K)

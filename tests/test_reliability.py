@@ -286,3 +286,24 @@ def test_many_threads_with_onnxruntime_threads_give_the_serial_poses(drill):
         for _ in range(2):
             parallel = list(pool.map(lambda c: edgepose.estimate(c, codebook, encoder=encoder).matrix, clouds))
             assert all(np.array_equal(p, s) for p, s in zip(parallel, serial))
+
+
+def test_bad_depth_images_and_intrinsics_raise_clear_errors():
+    depth = np.full((4, 5), 1000, np.uint16)
+    K = [[500.0, 0, 2], [0, 500.0, 2], [0, 0, 1]]
+    bad_intrinsics = [
+        ([[0, 0, 2], [0, 500, 2], [0, 0, 1]], "pinhole"),  # fx = 0 would divide by zero
+        (np.full((3, 3), np.nan), "pinhole"),
+        ([[1, 2], [3]], "9 numbers"),
+        ("abc", "9 numbers"),
+    ]
+    for bad_K, message in bad_intrinsics:
+        with pytest.raises(edgepose.InvalidCloudError, match=message):
+            edgepose.cloud_from_depth(depth, bad_K)
+    for scale in (0.0, -1.0, float("nan")):
+        with pytest.raises(edgepose.InvalidCloudError, match="depth_scale"):
+            edgepose.cloud_from_depth(depth, K, depth_scale=scale)
+    with pytest.raises(edgepose.InvalidCloudError, match="hold numbers"):
+        edgepose.cloud_from_depth(np.full((4, 5), "a"), K)
+    cloud = edgepose.cloud_from_depth(depth, K)
+    assert cloud.shape == (20, 3) and np.allclose(cloud[:, 2], 1.0)

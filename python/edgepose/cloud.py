@@ -45,7 +45,8 @@ def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.
         hint = "; an organised (H, W, 3) cloud needs .reshape(-1, 3)" if array.ndim == 3 and array.shape[-1] == 3 else ""
         raise InvalidCloudError(f"cloud must have shape (N, 3), got {array.shape}{hint}")
 
-    counts = [int(_valid_rows(array[s : s + _CHUNK_ROWS]).sum()) for s in range(0, len(array), _CHUNK_ROWS)]
+    masks = [_valid_rows(array[s : s + _CHUNK_ROWS]) for s in range(0, len(array), _CHUNK_ROWS)]
+    counts = [int(mask.sum()) for mask in masks]
     valid = sum(counts)
     if valid < MIN_POINTS:
         raise InvalidCloudError(
@@ -58,7 +59,7 @@ def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.
         return array.astype(np.float64)
     else:
         ranks = np.arange(valid)
-    return array[_rows_of_valid(array, counts, ranks)].astype(np.float64)
+    return array[_rows_of_valid(masks, counts, ranks)].astype(np.float64)
 
 
 def clean_cloud(cloud: object, diameter: float, max_points: int) -> np.ndarray:
@@ -94,18 +95,31 @@ def _valid_rows(chunk: np.ndarray) -> np.ndarray:
     return (np.abs(chunk) <= MAX_COORDINATE).all(axis=1)  # False for NaN too
 
 
-def _rows_of_valid(array: np.ndarray, counts: list[int], ranks: np.ndarray) -> np.ndarray:
-    """Row indices of the valid rows numbered ``ranks`` (in that order), chunk
-    by chunk, so no index array of the whole cloud is ever made."""
+def _rows_of_valid(masks: list[np.ndarray], counts: list[int], ranks: np.ndarray) -> np.ndarray:
+    """Row indices of the valid rows numbered ``ranks`` (in that order), from
+    each chunk's validity ``masks`` and ``counts``, chunk by chunk, so no index
+    array of the whole cloud is ever made."""
     rows = np.empty(len(ranks), dtype=np.intp)
     first_rank = np.cumsum([0, *counts])
     chunk_of = np.searchsorted(first_rank, ranks, side="right") - 1
     for c in np.unique(chunk_of):
         start = int(c) * _CHUNK_ROWS
-        valid_here = np.flatnonzero(_valid_rows(array[start : start + _CHUNK_ROWS]))
+        valid_here = np.flatnonzero(masks[c])
         picked = chunk_of == c
         rows[picked] = start + valid_here[ranks[picked] - first_rank[c]]
     return rows
+
+
+def pinhole_matrix(K: object) -> np.ndarray:
+    """``K`` as a (3, 3) float64 pinhole camera matrix, checked: finite,
+    fx, fy > 0 and last row (0, 0, 1); otherwise InvalidCloudError."""
+    try:
+        matrix = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    except (TypeError, ValueError):
+        raise InvalidCloudError(f"K must be 9 numbers (a 3×3 matrix), got {K!r}") from None
+    if not (np.isfinite(matrix).all() and matrix[0, 0] > 0 and matrix[1, 1] > 0 and np.allclose(matrix[2], [0, 0, 1])):
+        raise InvalidCloudError(f"K is not a pinhole camera matrix (fx, fy > 0, last row 0 0 1): {matrix.tolist()}")
+    return matrix
 
 
 def cloud_from_depth(
@@ -121,11 +135,13 @@ def cloud_from_depth(
     at (u, v) (OpenCV). ``depth / depth_scale`` is metres, as in Open3D:
     1000 for uint16 millimetre images, 1 for float metres."""
     depth = np.asarray(depth)
-    K = np.asarray(K, dtype=np.float64)
+    K = pinhole_matrix(K)
     if depth.ndim != 2:
         raise InvalidCloudError(f"depth must be a 2-D image, got shape {depth.shape}")
-    if K.shape != (3, 3):
-        raise InvalidCloudError(f"K must be 3×3, got {K.shape}")
+    if not (np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)):
+        raise InvalidCloudError(f"depth must hold numbers, got dtype {depth.dtype}")
+    if not (np.isfinite(depth_scale) and depth_scale > 0):
+        raise InvalidCloudError(f"depth_scale must be a positive number (depth units per metre), got {depth_scale}")
     z = depth.astype(np.float64) / depth_scale
     valid = np.isfinite(z) & (z > 0)
     if mask is not None:

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from edgepose.errors import EdgePoseError
+from edgepose.cloud import pinhole_matrix
+from edgepose.errors import EdgePoseError, InvalidCloudError
 
 #: Cloud file suffixes :func:`read_cloud` understands.
 CLOUD_SUFFIXES = (".ply", ".pcd", ".npy")
@@ -125,18 +126,24 @@ def read_depth_png(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_mask_png(path: str | os.PathLike) -> np.ndarray:
-    """(H, W) bool mask of a PNG: true where any channel is non-zero."""
-    image = _read_png(path)
-    return image.any(axis=2) if image.ndim == 3 else image != 0
+    """(H, W) bool mask of a PNG: true where the pixel is non-zero: its
+    palette index in a palette image, any colour channel otherwise. Alpha is
+    ignored (an opaque mask has alpha 255 everywhere)."""
+    image = _read_png(path, palette_indices=True)
+    if image.ndim == 2:
+        return image != 0
+    colour = image[..., :-1] if image.shape[2] in (2, 4) else image  # LA, RGBA, PA: drop alpha
+    return colour.any(axis=2)
 
 
-def _read_png(path: str | os.PathLike) -> np.ndarray:
+def _read_png(path: str | os.PathLike, palette_indices: bool = False) -> np.ndarray:
+    """The PNG's pixels; palette images as RGBA, or as their palette indices."""
     from PIL import Image, UnidentifiedImageError
 
     path = _existing(path)
     try:
         with Image.open(path) as image:
-            if image.mode in ("P", "PA"):
+            if image.mode in ("P", "PA") and not palette_indices:
                 image = image.convert("RGBA")
             elif image.mode == "I;16B":
                 image = image.convert("I;16")
@@ -180,12 +187,9 @@ def parse_intrinsics(text: str) -> np.ndarray:
         except ValueError:
             raise FileFormatError(f"--K: {text!r} is neither a JSON file nor 9 numbers") from None
     try:
-        K = np.asarray(value, dtype=np.float64).reshape(3, 3)
-    except (TypeError, ValueError):
-        raise FileFormatError(f"{source}: K must be 9 numbers (row-major 3×3), got {value!r}") from None
-    if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])):
-        raise FileFormatError(f"{source}: not a pinhole camera matrix (fx, fy > 0, last row 0 0 1): {K.tolist()}")
-    return K
+        return pinhole_matrix(value)
+    except InvalidCloudError as e:
+        raise FileFormatError(f"{source}: {e}") from None
 
 
 def read_pose(path: str | os.PathLike) -> np.ndarray:
