@@ -145,6 +145,8 @@ def test_search_and_refinement_settings_are_bounded(drill):
             edgepose.estimate(cloud, codebook, **bad)
     everything = edgepose.estimate(cloud, codebook, k=len(codebook))
     assert len(everything.candidates) == len(codebook)
+    coarse_only = edgepose.estimate(cloud, codebook, icp_iterations=0)
+    assert coarse_only.refined and np.isfinite(coarse_only.fit) and coarse_only.fit < 0.01
 
 
 def test_an_encoder_other_than_the_codebooks_is_refused(drill, tmp_path):

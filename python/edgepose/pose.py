@@ -72,6 +72,8 @@ class Pose:
     timings: dict = field(default_factory=dict)
     """Seconds per stage: prepare, encode, search, irr, verify, refine, total."""
     refined: bool = False
+    """Whether ICP refined the pose (``refine=True`` and ICP found enough
+    points near the model); ``fit`` is then an ICP RMSE."""
 
     @property
     def matrix(self) -> np.ndarray:
@@ -114,7 +116,11 @@ def estimate(
     """The pose ``T_cam_obj`` of ``codebook``'s object in ``cloud``: an (N, 3)
     array of camera-frame points in metres (float32/64, or anything with
     ``.points``), segmented to that object. Deterministic: the same input
-    gives the same pose."""
+    gives the same pose.
+
+    ``k`` codebook views are verified; ``refine=False`` skips ICP;
+    ``icp_iterations`` bounds the final ICP polish of the best hypothesis
+    (0: the hypotheses' coarse ICP only)."""
     encoder = encoder or default_encoder()
     if encoder.fingerprint != codebook.fingerprint:
         raise CodebookError(
@@ -153,6 +159,7 @@ def estimate(
     fit = codebook.index.verify(np.ascontiguousarray(keypoints, dtype=np.float32), rotations, translations)
     chosen = int(np.argmin(fit))
     rotation, translation, best_fit = rotations[chosen], translations[chosen], float(fit[chosen])
+    refined = False
     t5 = time.perf_counter()
 
     if refine:
@@ -167,15 +174,15 @@ def estimate(
         usable = np.isfinite(rmse) & (inliers >= max(16, 0.9 * inliers.max()))
         if usable.any():
             pick = int(np.argmin(np.where(usable, rmse, np.inf)))
-            fine_R, fine_t, _, _, fine_inliers, fine_rmse = codebook.index.refine(
-                _subsample(cloud_f32, ICP_POINTS, seed=2), hyp_R[pick : pick + 1], hyp_t[pick : pick + 1],
-                icp_iterations, max_distance,
-            )
-            chosen = int(starts[pick])
-            if fine_inliers[0] >= 16 and np.isfinite(fine_rmse[0]):
-                rotation, translation, best_fit = fine_R[0], fine_t[0], float(fine_rmse[0])
-            else:
-                rotation, translation, best_fit = hyp_R[pick], hyp_t[pick], float(rmse[pick])
+            chosen, refined = int(starts[pick]), True
+            rotation, translation, best_fit = hyp_R[pick], hyp_t[pick], float(rmse[pick])
+            if icp_iterations > 0:
+                fine_R, fine_t, _, _, fine_inliers, fine_rmse = codebook.index.refine(
+                    _subsample(cloud_f32, ICP_POINTS, seed=2), hyp_R[pick : pick + 1], hyp_t[pick : pick + 1],
+                    icp_iterations, max_distance,
+                )
+                if fine_inliers[0] >= 16 and np.isfinite(fine_rmse[0]):
+                    rotation, translation, best_fit = fine_R[0], fine_t[0], float(fine_rmse[0])
     t6 = time.perf_counter()
 
     # Model frame = object (mesh) frame shifted by the model centre.
@@ -192,5 +199,5 @@ def estimate(
             "prepare": t1 - t0, "encode": t2 - t1, "search": t3 - t2, "irr": t4 - t3,
             "verify": t5 - t4, "refine": t6 - t5, "total": t6 - t0,
         },
-        refined=refine,
+        refined=refined,
     )
