@@ -151,7 +151,7 @@ def demo(
 
     import edgepose
     from edgepose.eval import YCB_SYMMETRIC, pose_errors, render_view
-    from edgepose.model import read_mesh, detect_scale
+    from edgepose.model import read_mesh
     from edgepose.viz import Frame, recorder, save_result_png
 
     out = _stdout()
@@ -167,8 +167,7 @@ def demo(
             origin = f"shipped codebook {codebook_path.name}, {len(codebook)} views"
         else:
             name, mesh_path = mesh.stem, mesh
-            triangles = read_mesh(mesh_path)
-            triangles.apply_scale(scale or detect_scale(float(np.ptp(triangles.vertices, axis=0).max())))
+            triangles = read_mesh(mesh_path, scale=scale)
             codebook = edgepose.build_codebook(triangles, views=views, scale=1.0)
             t = codebook.timings
             origin = (f"codebook {len(codebook)} views built in {t['total']:.2f} s "
@@ -339,9 +338,6 @@ def estimate(
             camera = io.parse_intrinsics(K)
             depth = io.read_depth_png(cloud)
             segmentation = io.read_mask_png(mask)
-            if segmentation.shape != depth.shape:
-                raise Failure(f"{mask}: mask is {segmentation.shape[1]}×{segmentation.shape[0]}, "
-                              f"depth is {depth.shape[1]}×{depth.shape[0]}")
             points = edgepose.cloud_from_depth(depth, camera, segmentation, depth_scale=depth_scale)
         else:
             if K is not None or mask is not None:

@@ -101,7 +101,6 @@ def load_model(
         raise InvalidModelError(f"scale must be a positive number, got {scale}")
     _check_size(float(np.linalg.norm(np.ptp(vertices, axis=0))) * scale, scale, _name(source))
     vertices = vertices * scale
-    faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise InvalidModelError(f"{_name(source)}: faces must be (F, 3) vertex indices, got {faces.dtype} {faces.shape}")
     if faces.min() < 0 or faces.max() >= len(vertices):
@@ -161,9 +160,11 @@ def _checked(model: StandardModel, name: str) -> StandardModel:
     return model
 
 
-def read_mesh(path: str | os.PathLike) -> "trimesh.Trimesh":  # noqa: F821
+def read_mesh(path: str | os.PathLike, scale: float | None = 1.0) -> "trimesh.Trimesh":  # noqa: F821
     """A mesh file (obj, ply, stl, glb, off, …) as one ``trimesh.Trimesh``:
-    the triangles of every geometry, in the file's frame and units.
+    the triangles of every geometry, in the file's frame, times ``scale``
+    (1: the file's units; ``None``: metres, with millimetre files detected
+    as :func:`load_model` does).
 
     Geometry only: materials and textures are ignored (so no image library is
     needed), and multi-part files (glb scenes) are merged with their node
@@ -189,7 +190,11 @@ def read_mesh(path: str | os.PathLike) -> "trimesh.Trimesh":  # noqa: F821
     offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
     vertices = np.concatenate([v for v, _ in parts])
     faces = np.concatenate([f + o for (_, f), o in zip(parts, offsets)])
-    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    if scale is None:
+        scale = detect_scale(float(np.ptp(vertices, axis=0).max()))
+    if not (np.isfinite(scale) and scale > 0):
+        raise InvalidModelError(f"scale must be a positive number, got {scale}")
+    return trimesh.Trimesh(vertices=vertices * scale, faces=faces, process=False)
 
 
 def _as_triples(array: np.ndarray, name: str) -> np.ndarray:

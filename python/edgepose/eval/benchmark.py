@@ -91,14 +91,11 @@ def load_object(
     ``symmetric`` defaults to membership of :data:`YCB_SYMMETRIC` by name."""
     import trimesh
 
-    from edgepose.model import read_mesh, detect_scale, load_model
+    from edgepose.model import load_model, read_mesh
 
     if not isinstance(mesh, trimesh.Trimesh):
         name = name or Path(mesh).stem
-        mesh = read_mesh(mesh)
-        scale = detect_scale(float(np.ptp(mesh.vertices, axis=0).max()))
-        if scale != 1.0:
-            mesh.apply_scale(scale)
+        mesh = read_mesh(mesh, scale=None)
     name = name or "object"
     model = load_model(mesh)
     rendered = [render_view(mesh, seed=s, occluders=occluders) for s in seeds]
