@@ -35,7 +35,10 @@ def weights_from_onnx(path: Path) -> dict[str, np.ndarray]:
 def load_into(module: torch.nn.Module, weights: dict[str, np.ndarray]) -> None:
     """Fill ``module``'s parameters from ``weights``: by name, else the one
     unnamed (transposed) matrix of matching shape."""
-    unnamed = {tuple(w.shape): w for name, w in weights.items() if name.startswith("onnx::")}
+    unnamed_weights = [w for name, w in weights.items() if name.startswith("onnx::")]
+    unnamed = {tuple(w.shape): w for w in unnamed_weights}
+    if len(unnamed) != len(unnamed_weights):
+        raise ValueError("two unnamed weight matrices share a shape: cannot tell which layer each belongs to")
     state = {}
     for name, param in module.state_dict().items():
         if name in weights:

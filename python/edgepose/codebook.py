@@ -111,9 +111,8 @@ class Codebook:
                     "centre": self.model.centre.tolist(),
                     "scale": self.model.scale,
                     "diameter": self.model.diameter,
-                    # The core's parallel mean of neighbour distances varies in
-                    # its last float64 bits with thread scheduling; the maps use
-                    # it as float32, so store that and keep files reproducible.
+                    # Stored at the float32 precision the maps use it at (files of
+                    # earlier builds hold it so; the core's sum is now ordered).
                     "spacing": float(np.float32(self.model.spacing)),
                 }
             ),

@@ -23,9 +23,10 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
     let zs: Vec<f32> = map.iter().map(|p| p[2]).collect();
     let mut distances = vec![0.0f32; map.len()];
     let mut candidates: Vec<(f32, u32)> = vec![(0.0, 0); map.len()];
-    // Split the map into k blocks: their k minima are k distinct distances, so
-    // the largest of them bounds the k-th smallest from above.
-    let block = map.len().div_ceil(k);
+    // Split the map into at least k blocks: any k of their minima are k
+    // distinct distances, so the largest block minimum bounds the k-th
+    // smallest distance from above.
+    let block = map.len() / k;
     for c in &map[..centres] {
         let mut bound = f32::NEG_INFINITY;
         for (((d, x), y), z) in distances.chunks_mut(block).zip(xs.chunks(block)).zip(ys.chunks(block)).zip(zs.chunks(block)) {
@@ -86,18 +87,21 @@ mod tests {
     #[test]
     fn matches_a_full_sort() {
         let mut rng = SplitMix64::new(3);
-        let map = random_map(200, &mut rng);
-        let groups = map_neighbours(&map, 20, 8);
-        for (c, group) in groups.chunks_exact(8).enumerate() {
-            let mut all: Vec<(f32, u32)> = map
-                .iter()
-                .enumerate()
-                .map(|(j, p)| ((0..3).map(|a| (p[a] - map[c][a]).powi(2)).sum(), j as u32))
-                .collect();
-            all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            let expected: Vec<u32> = all[..8].iter().map(|&(_, j)| j).collect();
-            assert_eq!(group, expected.as_slice());
-            assert_eq!(group[0], c as u32, "a centre is its own nearest point");
+        // Map sizes divisible by k and not (the block bound must hold for both).
+        for (n, centres, k) in [(200, 20, 8), (100, 30, 16), (37, 10, 5)] {
+            let map = random_map(n, &mut rng);
+            let groups = map_neighbours(&map, centres, k);
+            for (c, group) in groups.chunks_exact(k).enumerate() {
+                let mut all: Vec<(f32, u32)> = map
+                    .iter()
+                    .enumerate()
+                    .map(|(j, p)| ((0..3).map(|a| (p[a] - map[c][a]).powi(2)).sum(), j as u32))
+                    .collect();
+                all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                let expected: Vec<u32> = all[..k].iter().map(|&(_, j)| j).collect();
+                assert_eq!(group, expected.as_slice(), "{n} points, k = {k}");
+                assert_eq!(group[0], c as u32, "a centre is its own nearest point");
+            }
         }
     }
 

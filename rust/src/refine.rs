@@ -215,7 +215,7 @@ mod tests {
         assert_eq!(each.len(), 3);
         for (start, out) in starts.iter().zip(&each) {
             let alone = index.refine(&cloud, *start, 25, 0.05);
-            assert_eq!(out.pose, alone.pose, "parallel and serial ICP must agree exactly");
+            assert_eq!(out.pose, alone.pose, "several starts at once and one at a time must agree exactly");
         }
         // The near starts converge to the truth; the turned-over one fits worse.
         assert!(each[0].rmse < 1e-4 && each[1].rmse < 1e-4, "{each:?}");
