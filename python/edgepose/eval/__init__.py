@@ -27,6 +27,7 @@ from edgepose.eval.render import (
     random_pose,
     render_view,
 )
+from edgepose.eval.scenes import STRESS_LEVELS, SceneView, Stress, render_scene
 
 __all__ = [
     "LINEMOD_CAMERA",
@@ -35,6 +36,9 @@ __all__ = [
     "Camera",
     "PoseErrors",
     "RenderedView",
+    "STRESS_LEVELS",
+    "SceneView",
+    "Stress",
     "add",
     "add_or_s",
     "add_s",
@@ -43,6 +47,7 @@ __all__ = [
     "pose_errors",
     "random_pose",
     "read_bop_csv",
+    "render_scene",
     "render_view",
     "rotation_error_deg",
     "translation_error_mm",

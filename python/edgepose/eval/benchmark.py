@@ -10,7 +10,7 @@ precedes the timed ones.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from edgepose.eval.baselines import NO_POSE, PoseMethod
 from edgepose.eval.metrics import YCB_SYMMETRIC, PoseErrors, auc, pose_errors
-from edgepose.eval.render import render_view
+from edgepose.eval.scenes import STRESS_LEVELS, Stress, render_scene
 
 if TYPE_CHECKING:
     import trimesh
@@ -40,6 +40,12 @@ class BenchObject:
     """Per view: (N, 3) float64 camera-frame cloud, metres."""
     poses: list[np.ndarray]
     """Per view: (4, 4) true T_cam_obj."""
+    stress: str = "clean"
+    """Name of the :class:`edgepose.eval.scenes.Stress` level the views were rendered at."""
+    visible: list[float] = field(default_factory=list)
+    """Per view: achieved visible fraction of the object (1 when unoccluded)."""
+    spill: list[float] = field(default_factory=list)
+    """Per view: spilled (off-object) points / object points in the cloud."""
 
 
 @dataclass
@@ -85,20 +91,40 @@ def load_object(
     name: str | None = None,
     symmetric: bool | None = None,
     occluders: int = 0,
+    stress: Stress | str = "clean",
 ) -> BenchObject:
     """A mesh (file in metres or detected millimetres, or a Trimesh in metres)
-    and one rendered view (:func:`edgepose.eval.render_view`) per seed.
-    ``symmetric`` defaults to membership of :data:`YCB_SYMMETRIC` by name."""
+    and one rendered view per seed. ``symmetric`` defaults to membership of
+    :data:`YCB_SYMMETRIC` by name.
+
+    At the ``clean`` stress level (the default) the views are
+    :func:`edgepose.eval.render_view`'s, with ``occluders`` flat rectangles:
+    the clouds are identical to those of earlier benchmark runs. Any other
+    level renders :func:`edgepose.eval.scenes.render_scene` scenes (support
+    plane, neighbours, solid occluders, the level's sensor and mask effects);
+    ``occluders`` must then be 0."""
     import trimesh
 
+    from edgepose.eval.render import render_view
     from edgepose.model import load_model, read_mesh
 
+    stress = STRESS_LEVELS[stress] if isinstance(stress, str) else stress
     if not isinstance(mesh, trimesh.Trimesh):
         name = name or Path(mesh).stem
         mesh = read_mesh(mesh, scale=None)
     name = name or "object"
     model = load_model(mesh)
-    rendered = [render_view(mesh, seed=s, occluders=occluders) for s in seeds]
+    if stress.background:
+        if occluders:
+            raise ValueError("occluders (flat rectangles) apply to the clean level only; stress levels set their own")
+        scenes = [render_scene(mesh, stress, seed=s) for s in seeds]
+        clouds, poses = [v.cloud for v in scenes], [v.T_cam_obj for v in scenes]
+        visible, spill = [v.visible_fraction for v in scenes], [v.spill_fraction for v in scenes]
+    else:
+        views = [render_view(mesh, seed=s, occluders=occluders, distance=stress.distance, depth_noise=stress.depth_noise,
+                             quantization=stress.quantization, dropout=stress.dropout) for s in seeds]  # fmt: skip
+        clouds, poses = [v.cloud for v in views], [v.T_cam_obj for v in views]
+        visible, spill = [float("nan") if occluders else 1.0] * len(seeds), [0.0] * len(seeds)
     return BenchObject(
         name=name,
         mesh=mesh,
@@ -106,8 +132,11 @@ def load_object(
         diameter=model.diameter,
         symmetric=name in YCB_SYMMETRIC if symmetric is None else symmetric,
         seeds=list(seeds),
-        clouds=[r.cloud for r in rendered],
-        poses=[r.T_cam_obj for r in rendered],
+        clouds=clouds,
+        poses=poses,
+        stress=stress.name,
+        visible=visible,
+        spill=spill,
     )
 
 

@@ -1,0 +1,399 @@
+"""Stressed synthetic scenes: the object in front of a support plane beside
+other objects, occluded by solid shapes, seen by a noisy sensor and cut out
+by an imperfect detector mask.
+
+:data:`STRESS_LEVELS` names the stress levels the pose benchmark reports;
+:func:`render_scene` renders one view of a mesh at one level. Units are
+metres; the camera frame is OpenCV's (x right, y down, z forward); poses are
+``T_cam_obj``. Every random choice comes from ``np.random.default_rng(seed)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from edgepose.cloud import cloud_from_depth
+from edgepose.eval.render import LINEMOD_CAMERA, Camera, random_pose, rasterize_depth, render_view
+
+if TYPE_CHECKING:
+    import trimesh
+
+#: Background farther than this (metres) is out of the sensor's range: no measurement.
+MAX_RANGE = 8.0
+#: Occluder bisection stops within this distance of the target visible fraction.
+_BISECT_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class Stress:
+    """One stress level of the pose benchmark: what the scene, the sensor and
+    the detector mask do to the object's cloud."""
+
+    name: str
+    """Short identifier (``STRESS_LEVELS`` key)."""
+    description: str = ""
+    """One line for reports."""
+    visible: float = 1.0
+    """Target fraction (0–1) of the object's own pixels left visible by the occluder; 1: no occluder."""
+    spill_px: int = 0
+    """Pixels (Euclidean disk radius) by which the detector mask grows over the background."""
+    erode_px: int = 0
+    """Pixels (Euclidean disk radius) by which the detector mask shrinks into the object."""
+    cut: float = 0.0
+    """Fraction (0–1) of the object's visible pixels the detector misses, cut off by a half-plane of random direction."""
+    flying: float = 0.0
+    """Fraction (0–1) of the spilled pixels that are mixed ("flying") pixels, with a depth between the
+    object's and the background's."""
+    noise: str = "constant"
+    """Depth-noise model: ``"constant"`` (std ``depth_noise``) or ``"kinect"`` (std
+    0.0012 + 0.0019·(z − 0.4)² m, Nguyen et al. 2012)."""
+    depth_noise: float = 0.001
+    """Metres: std of the ``"constant"`` model's Gaussian depth noise."""
+    lateral_px: float = 0.0
+    """Pixels: std of the lateral jitter of every pixel's depth sample (moves depth edges)."""
+    distance: tuple[float, float] = (0.45, 0.9)
+    """Metres: range of the object's centre depth."""
+    quantization: float = 0.001
+    """Metres: depth is rounded to multiples of this."""
+    dropout: float = 0.02
+    """Probability (0–1) that a pixel has no measurement."""
+    background: bool = True
+    """Whether a support plane and 1–3 neighbouring objects are rendered; ``False`` (only with no other
+    stress) renders exactly :func:`edgepose.eval.render_view`'s view."""
+
+    def __post_init__(self) -> None:
+        if self.noise not in ("constant", "kinect"):
+            raise ValueError(f"unknown noise model {self.noise!r}; use 'constant' or 'kinect'")
+        plain = (self.visible >= 1.0 and not (self.spill_px or self.erode_px or self.cut or self.flying
+                 or self.lateral_px) and self.noise == "constant")  # fmt: skip
+        if not (self.background or plain):
+            raise ValueError("background=False renders render_view's plain view: no other stress allowed")
+
+
+#: The benchmark's stress levels, in report order.
+STRESS_LEVELS: dict[str, Stress] = {
+    s.name: s
+    for s in [
+        Stress("clean", "fully visible, perfect mask, 1 mm noise, no background (render_view's view)", background=False),
+        Stress("visible70", "solid occluder in front, 70 % of the object visible", visible=0.7),
+        Stress("visible40", "solid occluder in front, 40 % of the object visible", visible=0.4),
+        Stress("visible20", "solid occluder in front, 20 % of the object visible", visible=0.2),
+        Stress("spill2", "mask grown 2 px over the background; 1/4 of spilled pixels mixed", spill_px=2, flying=0.25),
+        Stress("spill5", "mask grown 5 px over the background; 1/4 of spilled pixels mixed", spill_px=5, flying=0.25),
+        Stress("spill8", "mask grown 8 px over the background; 1/4 of spilled pixels mixed", spill_px=8, flying=0.25),
+        Stress("eroded3", "mask eroded by 3 px", erode_px=3),
+        Stress("partial", "detector misses a half-plane cut of 25 % of the object's pixels", cut=0.25),
+        Stress("noise_far", "object 1.0-1.5 m away, Kinect noise 0.0012 + 0.0019 (z-0.4)^2 m, 0.8 px lateral "
+               "jitter", noise="kinect", lateral_px=0.8, distance=(1.0, 1.5)),  # fmt: skip
+        Stress("occluded30_spill5", "70 % visible and mask grown 5 px (1/4 mixed)", visible=0.7, spill_px=5,
+               flying=0.25),  # fmt: skip
+    ]
+}
+
+
+@dataclass(frozen=True, eq=False)
+class SceneView:
+    """One stressed depth frame of an object with its true pose."""
+
+    cloud: np.ndarray
+    """(N, 3) float64 camera-frame points, metres: ``edgepose.cloud_from_depth`` of the depth image
+    (as uint16 millimetres, the library defaults) under the detector ``mask``."""
+    depth: np.ndarray
+    """(H, W) float32 depth of the whole scene with sensor effects, metres; 0: no measurement."""
+    K: np.ndarray
+    """(3, 3) float64 intrinsics."""
+    mask: np.ndarray
+    """(H, W) bool detector mask (what the pose method is given)."""
+    true_mask: np.ndarray
+    """(H, W) bool pixels where the object is truly visible (in front of everything else)."""
+    T_cam_obj: np.ndarray
+    """(4, 4) float64 true pose."""
+    visible_fraction: float
+    """Achieved visible pixels / the object's pixels when rendered alone."""
+    spill_fraction: float
+    """Cloud points off the object (mask outside ``true_mask``) / cloud points on it."""
+    ideal_depth: np.ndarray
+    """(H, W) float32 noise-free scene z-buffer, metres; inf where empty."""
+    flying_mask: np.ndarray
+    """(H, W) bool mixed pixels (depth between the object's and the background's)."""
+    stress: str
+    camera: Camera
+
+
+def render_scene(
+    mesh: trimesh.Trimesh,
+    stress: Stress | str = "clean",
+    seed: int = 0,
+    *,
+    T_cam_obj: np.ndarray | None = None,
+    camera: Camera = LINEMOD_CAMERA,
+    neighbours: Sequence[trimesh.Trimesh] = (),
+    occluders: Sequence[trimesh.Trimesh] = (),
+) -> SceneView:
+    """A view of ``mesh`` (metres) at ``stress`` (a :class:`Stress` or a
+    :data:`STRESS_LEVELS` name). The pose is ``T_cam_obj`` or, when ``None``,
+    :func:`random_pose` drawn first from the seed's generator, as
+    :func:`render_view` draws it (same seed and distance → same pose).
+
+    Scene: a support plane 2–6 cm behind the object's farthest point, facing
+    the camera tilted by up to 30°; 1–3 neighbours (boxes, cylinders or
+    ``neighbours`` meshes) beside the object, never in front of it; when
+    ``stress.visible < 1`` an occluder (box, cylinder or one of
+    ``occluders``, scaled to span the object) between camera and object, slid
+    in from a random side by bisection until the visible fraction is within
+    1 % of the target (or as close as its shape allows). Then lateral jitter
+    and depth noise, mixed pixels in the spill ring, 1 mm quantisation and
+    dropout; the detector mask is the true visible mask dilated, eroded
+    and/or cut."""
+    import trimesh.transformations as tf
+
+    stress = STRESS_LEVELS[stress] if isinstance(stress, str) else stress
+    if not stress.background:
+        return _plain_view(mesh, stress, seed, T_cam_obj, camera)
+    rng = np.random.default_rng(seed)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    box_centre = vertices.min(0) / 2 + vertices.max(0) / 2
+    if T_cam_obj is None:
+        T_cam_obj = random_pose(rng, camera, stress.distance, centre=box_centre)
+    T_cam_obj = np.asarray(T_cam_obj, dtype=np.float64)
+    posed = vertices @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    centre = T_cam_obj[:3, :3] @ box_centre + T_cam_obj[:3, 3]
+    z_obj = rasterize_depth(posed, np.asarray(mesh.faces), camera)
+    alone = np.isfinite(z_obj)
+
+    # Support plane, analytic: n·x = offset, n towards the camera tilted ≤ 30°.
+    toward = -centre / np.linalg.norm(centre)
+    axis = np.cross(toward, rng.normal(size=3))
+    tilt = tf.rotation_matrix(np.radians(rng.uniform(0, 30)), axis / np.linalg.norm(axis))[:3, :3]
+    normal = tilt @ toward
+    offset = float((posed @ normal).min() - rng.uniform(0.02, 0.06))
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_rest = offset / (rays @ normal)  # ray z = 1: the plane's depth along it
+    z_rest[~((z_rest > 0) & (z_rest < MAX_RANGE))] = np.inf
+
+    # Neighbours beside the object, pushed out until none hides an object pixel.
+    u, v = _project(centre, camera)
+    rows, cols = np.nonzero(alone)
+    count = int(rng.integers(1, 4)) if len(rows) else 0
+    start = rng.uniform(0, 2 * np.pi)
+    for k in range(count):
+        nb = _primitive(rng, list(neighbours))
+        nb_vertices = np.asarray(nb.vertices) @ tf.random_rotation_matrix(rng.random(3))[:3, :3].T
+        nb_vertices -= nb_vertices.min(0) / 2 + nb_vertices.max(0) / 2
+        angle = start + 2 * np.pi * k / count + rng.uniform(-0.4, 0.4)
+        e = np.array([np.cos(angle), np.sin(angle), 0.0])
+        r_obj = ((cols - u) * e[0] + (rows - v) * e[1]).max() * centre[2] / camera.fx
+        lateral = r_obj + (nb_vertices @ e).max() + rng.uniform(-0.005, 0.02)
+        depth_shift = rng.uniform(-0.01, 0.05)
+        r0, c0 = rows.min(), cols.min()
+        box = _crop(camera, r0, rows.max() + 1, c0, cols.max() + 1)
+        for _ in range(8):
+            moved = nb_vertices + centre + lateral * e + [0, 0, depth_shift]
+            if not (rasterize_depth(moved, nb.faces, box) < z_obj[r0 : r0 + box.height, c0 : c0 + box.width]).any():
+                z_rest = np.minimum(z_rest, rasterize_depth(moved, nb.faces, camera))
+                break
+            lateral += 0.01 + 0.2 * lateral
+
+    visible = alone & (z_obj < z_rest)
+    z_scene = np.minimum(z_obj, z_rest)
+    if stress.visible < 1.0 and visible.any():
+        z_occ = _occlude(stress.visible, z_obj, visible, centre, camera, rng, occluders)
+        visible &= z_obj < z_occ
+        z_scene = np.minimum(z_scene, z_occ)
+    visible_fraction = float(visible.sum()) / max(int(alone.sum()), 1)
+    ideal = z_scene.astype(np.float32)
+
+    # Sensor: lateral jitter of depth samples, then axial noise.
+    depth = z_scene.copy()
+    if stress.lateral_px > 0:
+        jitter = np.clip(np.rint(rng.normal(0.0, stress.lateral_px, size=(2, *depth.shape))), -2, 2).astype(int)
+        r = np.clip(np.arange(camera.height)[:, None] + jitter[0], 0, camera.height - 1)
+        c = np.clip(np.arange(camera.width)[None, :] + jitter[1], 0, camera.width - 1)
+        depth = depth[r, c]
+    measured = np.isfinite(depth)
+    depth[measured] += rng.normal(size=int(measured.sum())) * noise_sigma(stress, depth[measured])
+
+    # Detector mask, then mixed pixels in its spill ring.
+    mask = visible.copy()
+    if stress.spill_px > 0:
+        mask = dilate(mask, stress.spill_px)
+    if stress.erode_px > 0:
+        mask = erode(mask, stress.erode_px)
+    if stress.cut > 0 and visible.any():
+        angle = rng.uniform(0, 2 * np.pi)
+        rows, cols = np.nonzero(visible)
+        along = lambda r, c: c * np.cos(angle) + r * np.sin(angle)  # noqa: E731
+        threshold = np.quantile(along(rows, cols), 1.0 - stress.cut)
+        rr, cc = np.mgrid[0 : camera.height, 0 : camera.width]
+        mask &= along(rr, cc) <= threshold
+    ring = mask & ~visible & measured
+    flying = np.zeros_like(mask)
+    if stress.flying > 0 and ring.any():
+        near_obj = _spread(np.where(visible, z_obj, np.inf), max(stress.spill_px, 1))
+        candidates = np.flatnonzero(ring & np.isfinite(near_obj))
+        picked = rng.choice(candidates, int(round(stress.flying * len(candidates))), replace=False)
+        flying.flat[picked] = True
+        alpha = rng.uniform(0.1, 0.9, size=len(picked))
+        fg = near_obj.flat[picked]
+        depth.flat[picked] = fg + alpha * (depth.flat[picked] - fg)
+
+    if stress.quantization > 0:
+        depth[measured] = np.round(depth[measured] / stress.quantization) * stress.quantization
+    if stress.dropout > 0:
+        measured &= rng.random(depth.shape) >= stress.dropout
+    measured &= (depth > 0) & (depth < 65.535)
+    depth = np.where(measured, depth, 0.0).astype(np.float32)
+    depth_mm = np.round(depth.astype(np.float64) * 1000.0).astype(np.uint16)
+    cloud = cloud_from_depth(depth_mm, camera.K, mask)
+    on_object = int((mask & visible & measured).sum())
+    spilled = int((mask & ~visible & measured).sum())
+    return SceneView(
+        cloud=cloud, depth=depth, K=camera.K, mask=mask, true_mask=visible, T_cam_obj=T_cam_obj,
+        visible_fraction=visible_fraction, spill_fraction=spilled / max(on_object, 1), ideal_depth=ideal,
+        flying_mask=flying & measured, stress=stress.name, camera=camera,
+    )  # fmt: skip
+
+
+def noise_sigma(stress: Stress, z: np.ndarray) -> np.ndarray:
+    """Std (metres) of the depth noise of ``stress``'s model at depths ``z`` (metres)."""
+    z = np.asarray(z, dtype=np.float64)
+    return 0.0012 + 0.0019 * (z - 0.4) ** 2 if stress.noise == "kinect" else np.full(z.shape, stress.depth_noise)
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``mask`` grown by a Euclidean disk of ``radius`` pixels (numpy shifts)."""
+    mask = np.asarray(mask, dtype=bool)
+    if radius <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    padded = np.pad(mask, radius)
+    out = np.zeros_like(mask)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dy * dy + dx * dx <= radius * radius:
+                out |= padded[radius + dy : radius + dy + h, radius + dx : radius + dx + w]
+    return out
+
+
+def erode(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``mask`` shrunk by a Euclidean disk of ``radius`` pixels (outside the image counts as outside)."""
+    mask = np.asarray(mask, dtype=bool)
+    return ~dilate(~np.pad(mask, radius), radius)[radius:-radius, radius:-radius] & mask
+
+
+def _plain_view(mesh, stress: Stress, seed: int, T_cam_obj, camera: Camera) -> SceneView:
+    """``render_view``'s view as a SceneView (the ``clean`` level: identical clouds)."""
+    view = render_view(mesh, T_cam_obj=T_cam_obj, seed=seed, camera=camera, distance=stress.distance,
+                       depth_noise=stress.depth_noise, quantization=stress.quantization, dropout=stress.dropout)  # fmt: skip
+    alone = np.isfinite(rasterize_depth(np.asarray(mesh.vertices, dtype=np.float64) @ view.T_cam_obj[:3, :3].T
+                                        + view.T_cam_obj[:3, 3], np.asarray(mesh.faces), camera))  # fmt: skip
+    ideal = np.where(alone, view.depth, np.inf).astype(np.float32)
+    return SceneView(
+        cloud=view.cloud, depth=view.depth, K=camera.K, mask=view.mask, true_mask=alone,
+        T_cam_obj=view.T_cam_obj, visible_fraction=1.0, spill_fraction=0.0, ideal_depth=ideal,
+        flying_mask=np.zeros_like(alone), stress=stress.name, camera=camera,
+    )  # fmt: skip
+
+
+def _occlude(target, z_obj, visible, centre, camera, rng, meshes) -> np.ndarray:
+    """Depth image of one occluder between camera and object, slid along a
+    random image direction so that ``visible`` keeps ``target`` of the
+    object's unoccluded pixels (bisection on the offset)."""
+    import trimesh
+    import trimesh.transformations as tf
+
+    rows, cols = np.nonzero(visible)
+    u, v = _project(centre, camera)
+    angle = rng.uniform(0, 2 * np.pi)
+    e = np.array([np.cos(angle), np.sin(angle), 0.0])  # slide direction (camera x-y plane)
+    along = (cols - u) * e[0] + (rows - v) * e[1]
+    across = (rows - v) * e[0] - (cols - u) * e[1]
+    front = float(z_obj[visible].min())
+    gap = rng.uniform(0.02, 0.10)
+    kind = int(rng.integers(0, 2 + len(meshes)))
+    grow = rng.uniform(1.2, 1.6)
+    # Occluder size in pixels, then metres at its depth.
+    width_px = (np.ptp(along) + 8) * grow
+    height_px = (np.ptp(across) + 8) * rng.uniform(1.2, 1.6)
+    if kind == 0:  # a box (a panel, a carton)
+        thickness = rng.uniform(0.02, 0.08)
+        z_occ = max(front - gap - thickness / 2, 0.15)
+        occluder = trimesh.creation.box(extents=[width_px * z_occ / camera.fx, height_px * z_occ / camera.fy, thickness])
+    elif kind == 1:  # a cylinder (a bottle, a pole) across the slide direction
+        a = width_px / camera.fx
+        z_occ = max((front - gap) / (1 + a / 2), 0.15)
+        occluder = trimesh.creation.cylinder(radius=a * z_occ / 2, height=height_px * z_occ / camera.fy, sections=32)
+        occluder.apply_transform(tf.rotation_matrix(np.pi / 2, [1, 0, 0]))  # axis along y
+    else:  # a given mesh, scaled to span the object
+        occluder = meshes[kind - 2].copy()
+        occluder.apply_translation(-occluder.bounds.mean(0))
+        ext = occluder.extents
+        z_occ = front - gap
+        for _ in range(2):
+            scale = max(width_px * z_occ / camera.fx / ext[0], height_px * z_occ / camera.fy / ext[1])
+            z_occ = max(front - gap - scale * ext[2] / 2, 0.15)
+        occluder.apply_scale(scale)
+    R = tf.rotation_matrix(angle, [0, 0, 1])[:3, :3]
+    tilt = tf.rotation_matrix(np.radians(rng.uniform(-15, 15)), rng.normal(size=3))[:3, :3]
+    local = np.asarray(occluder.vertices) @ (R @ tilt).T
+    faces = np.asarray(occluder.faces)
+    base = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0]) * z_occ
+    # While bisecting, rasterize only the object's bounding box, every other pixel when it is large.
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    step = 2 if (r1 - r0) * (c1 - c0) > 10_000 else 1
+    crop = _crop(camera, r0, r1, c0, c1, step)
+    vis_crop, z_crop = visible[r0:r1:step, c0:c1:step], z_obj[r0:r1:step, c0:c1:step]
+    n_alone = max(int(np.isfinite(z_crop).sum()), 1)
+
+    def fraction(offset_px: float) -> float:
+        z = rasterize_depth(local + base + e * offset_px * z_occ / camera.fx, faces, crop)
+        return int((vis_crop & (z_crop < z)).sum()) / n_alone
+
+    lo = (along.min() + along.max()) / 2  # occluder centred on the object: all of it hidden
+    hi = along.max() + width_px / 2 + 4  # leading edge past the object: nothing hidden
+    for _ in range(24):
+        mid = (lo + hi) / 2
+        f = fraction(mid)
+        if abs(f - target) <= _BISECT_TOLERANCE:
+            break
+        lo, hi = (mid, hi) if f < target else (lo, mid)
+    return rasterize_depth(local + base + e * mid * z_occ / camera.fx, faces, camera)
+
+
+def _crop(camera: Camera, r0: int, r1: int, c0: int, c1: int, step: int = 1) -> Camera:
+    """The camera seeing rows r0:r1:step, columns c0:c1:step of ``camera``'s image."""
+    return Camera(camera.fx / step, camera.fy / step, (camera.cx - c0) / step, (camera.cy - r0) / step,
+                  -(-(c1 - c0) // step), -(-(r1 - r0) // step))  # fmt: skip
+
+
+def _primitive(rng: np.random.Generator, meshes: list) -> trimesh.Trimesh:
+    """A neighbour: a random box (4–15 cm sides), cylinder (2–5 cm radius, 6–20 cm
+    high) or one of ``meshes``."""
+    import trimesh
+
+    kind = int(rng.integers(0, 2 + len(meshes)))
+    if kind >= 2:
+        return meshes[kind - 2]
+    if kind == 0:
+        return trimesh.creation.box(extents=rng.uniform(0.04, 0.15, size=3))
+    return trimesh.creation.cylinder(radius=rng.uniform(0.02, 0.05), height=rng.uniform(0.06, 0.2), sections=24)
+
+
+def _spread(z: np.ndarray, steps: int) -> np.ndarray:
+    """``z`` (inf where empty) with empty pixels filled, ``steps`` times, by
+    the nearest-to-camera value of their 8 neighbours."""
+    out, (h, w) = z.copy(), z.shape
+    for _ in range(steps):
+        padded = np.pad(out, 1, constant_values=np.inf)
+        best = np.min([padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+        out = np.where(np.isfinite(out), out, best)
+    return out
+
+
+def _project(p: np.ndarray, camera: Camera) -> tuple[float, float]:  # pixel (u, v) of a camera-frame point
+    return camera.fx * p[0] / p[2] + camera.cx, camera.fy * p[1] / p[2] + camera.cy
