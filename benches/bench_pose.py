@@ -1,24 +1,41 @@
 """Side-by-side pose benchmark: every method on the same synthetic depth views
-of the shared YCB meshes, in one process.
+of the shared YCB meshes, at every stress level, in one process.
 
     .venv/bin/python benches/bench_pose.py [--views 20] [--methods a,b] [--objects a,b]
+                                           [--stress clean,visible70,...] [--peer-views N]
                                            [--seed 0] [--occluders 0] [--out benches/RESULTS.md]
+    .venv/bin/python benches/bench_pose.py --tune [...]          # tuning objects -> benches/TUNING.md
+    .venv/bin/python benches/bench_pose.py --meshes DIR_OR_FILES [...]
 
 Methods: ``edgepose`` (picked up once ``edgepose.build_codebook`` and
 ``edgepose.estimate`` exist), ``open3d`` (FPFH + RANSAC + ICP), ``opencv-ppf``
 (point-pair features + ICP) and ``opencv-ppf-fast`` (coarser PPF settings).
-The peers need the ``baselines`` extra. Views are rendered once per object
-from fixed seeds, so every method sees identical clouds.
+The peers need the ``baselines`` extra.
+
+Stress levels (``edgepose.eval.scenes.STRESS_LEVELS``; default: all): views
+of each object at each level are rendered once from fixed seeds (the same
+seeds at every level, so one seed gives the same pose at every level with the
+same distance range), and every method sees identical clouds. Each method
+prepares each object once and runs it at every level. ``--peer-views N``
+runs the peers (every method but edgepose*) on the first N views only.
+
+Objects: the five YCB meshes (the reported figures), or ``--tune``: six CAD
+parts from ``../shared/data/train_shapes/cad/`` scaled to diameters drawn in
+8–25 cm, with seeds from 777000 on, written to ``benches/TUNING.md``: tune on
+these, never on the YCB figures. ``--meshes`` takes other files or folders.
 
 Writes ``--out`` (markdown tables, the command, the machine), next to it
-``<stem>_views.csv`` (every view's errors), ``<stem>_bop_<method>.csv`` (BOP
-results) and two plots, and prints the tables.
+``<stem>_views.csv`` (every view's errors and stress level),
+``<stem>_bop_<method>.csv`` (BOP results; scene_id = the stress level's index
+in STRESS_LEVELS), ``<stem>_stress.png`` (ADD(-S) per level) and two plots of
+the first level, and prints the tables.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import datetime
 import os
 import platform
@@ -42,12 +59,20 @@ from edgepose.eval.baselines import (
     available_edgepose,
 )
 from edgepose.eval.benchmark import BenchObject as ObjectData
-from edgepose.eval.benchmark import MethodRun, ViewResult, load_object, summarise
-from edgepose.eval.benchmark import percent as _pct
+from edgepose.eval.benchmark import MethodRun, load_object, summarise
 from edgepose.eval.benchmark import run_method as run_views
+from edgepose.eval.scenes import STRESS_LEVELS
 
 REPO = Path(__file__).resolve().parents[1]
 YCB = REPO.parent / "shared" / "data" / "ycb"
+CAD = REPO.parent / "shared" / "data" / "train_shapes" / "cad"
+#: Tuning objects (``--tune``): disjoint from the reported YCB objects.
+TUNE_MESHES = ["bunny.ply", "fandisk.obj", "teapot.stl", "suzanne.ply", "idler_riser.STL", "busted.STL"]
+#: Diameter range (metres) the tuning meshes are scaled to, one deterministic draw per mesh.
+TUNE_DIAMETER = (0.08, 0.25)
+#: Seeds of tuning views start here (the reported views use seed·100000 + k·1000 + i, k < 100).
+TUNE_SEED_BASE = 777_000
+MESH_SUFFIXES = {".ply", ".obj", ".stl", ".off", ".glb"}
 
 #: BOP object ids of the YCB-Video dataset (others get 100 + their index).
 YCBV_OBJ_ID = {
@@ -102,7 +127,6 @@ METHODS: dict[str, tuple[Callable[[], PoseMethod], str]] = {
 }
 
 DEFAULT_VIEWS = 20
-PROGRESS_EVERY = 5
 
 
 def _named(method: PoseMethod, name: str) -> PoseMethod:
@@ -110,36 +134,135 @@ def _named(method: PoseMethod, name: str) -> PoseMethod:
     return method
 
 
-def load_objects(names: list[str], views: int, seed: int, occluders: int) -> list[ObjectData]:
-    """Meshes, metric points and ``views`` rendered views per object; view
-    ``i`` of object ``k`` (in sorted order of all objects) has seed
-    ``seed·100000 + k·1000 + i``, so a subset sees the same views."""
+@dataclasses.dataclass
+class Source:
+    """One benchmark object before rendering: its mesh (metres) and seed block."""
+
+    name: str
+    mesh: object
+    seed_base: int
+    obj_id: int
+
+
+def load_sources(args: argparse.Namespace, parser: argparse.ArgumentParser) -> list[Source]:
+    """The objects to render: YCB (``--objects``), ``--tune`` or ``--meshes``.
+    View ``i`` of object ``k`` has seed ``base + seed·100000 + k·1000 + i``
+    (base 0, or TUNE_SEED_BASE for ``--tune``; k is the object's index in
+    the sorted YCB list, TUNE_MESHES or the ``--meshes`` list), so a subset
+    sees the same views."""
+    from edgepose.model import load_model, read_mesh
+
+    if args.tune or args.meshes:
+        if args.tune:
+            paths = [CAD / n for n in TUNE_MESHES]
+        else:
+            paths = []
+            for item in args.meshes.split(","):
+                path = Path(item.strip())
+                paths += sorted(p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES) if path.is_dir() else [path]
+        missing = [str(p) for p in paths if not p.is_file()]
+        if missing:
+            parser.error(f"no mesh file {missing}")
+        sources = []
+        for k, path in enumerate(paths):
+            if args.tune:  # mixed units: scale to a diameter drawn per mesh, deterministic
+                mesh = read_mesh(path, scale=1.0)
+                target = np.random.default_rng(TUNE_SEED_BASE + k).uniform(*TUNE_DIAMETER)
+                mesh.apply_scale(1.0 / float(np.linalg.norm(mesh.extents)))  # about 1 m: within load_model's range
+                mesh.apply_scale(target / load_model(mesh, scale=1.0).diameter)
+            else:
+                mesh = read_mesh(path, scale=None)
+            base = (TUNE_SEED_BASE if args.tune else 0) + args.seed * 100_000 + k * 1000
+            sources.append(Source(path.stem, mesh, base, 100 + k))
+        names = [s.name for s in sources]
+        if len(set(names)) != len(names):
+            parser.error(f"mesh names must be unique: {names}")
+        return sources
     every = sorted(p.stem for p in YCB.glob("*.ply"))
-    objects = []
-    for name in names:
-        k = every.index(name)
-        seeds = [seed * 100_000 + k * 1000 + i for i in range(views)]
-        objects.append(load_object(YCB / f"{name}.ply", seeds, occluders=occluders))
-    return objects
+    names = [o.strip() for o in args.objects.split(",")] if args.objects else every
+    missing = [n for n in names if n not in every]
+    if missing:
+        parser.error(f"no mesh for {missing} in {YCB}")
+    return [
+        Source(n, read_mesh(YCB / f"{n}.ply", scale=None), args.seed * 100_000 + every.index(n) * 1000,
+               YCBV_OBJ_ID.get(n, 100 + every.index(n)))
+        for n in names
+    ]  # fmt: skip
 
 
-def run_method(name: str, objects: list[ObjectData]) -> MethodRun:
-    """Prepare and run one method on every view of every object. One untimed
-    warm-up estimate per object (on its first view) precedes the timed ones."""
+class PrepareOnce:
+    """A method that prepares each mesh once, whatever the number of stress
+    levels it is then run at; records the preparation time per object."""
 
-    def progress(obj: ObjectData, i: int, done: list[ViewResult], prepare_s: float) -> None:
-        if i % PROGRESS_EVERY == 0 or i == len(obj.clouds):
-            print(
-                f"  {name:<16} {obj.name:<16} {i:>3}/{len(obj.clouds)} views  "
-                f"ADD-S {_pct(done, 'correct_add_s'):>5.1f}%  "
-                f"median {statistics.median(v.latency_s for v in done) * 1e3:7.0f} ms  "
-                f"(prepare {prepare_s:.2f} s)",
-                flush=True,
-            )
+    def __init__(self, method: PoseMethod) -> None:
+        self.method, self.name, self.mesh, self.prepare_s = method, method.name, None, {}
 
-    method = METHODS[name][0]()
-    method.name = name
-    return run_views(method, objects, progress)
+    def prepare(self, mesh: object) -> None:
+        if mesh is not self.mesh:
+            self.method.prepare(mesh)
+            self.mesh = mesh
+
+    def estimate(self, cloud: np.ndarray) -> np.ndarray:
+        return self.method.estimate(cloud)
+
+    @property
+    def last(self) -> object:
+        return getattr(self.method, "last", None)
+
+
+def is_peer(method: str) -> bool:
+    return not method.startswith("edgepose")
+
+
+def run_all(
+    sources: list[Source], levels: list[str], methods: list[str], views: int, peer_views: int | None, occluders: int
+) -> tuple[dict[str, list[MethodRun]], dict[str, list[ObjectData]]]:
+    """Every method on every view of every object at every level: (runs by
+    level, in ``methods`` order; objects by level, without their clouds)."""
+    instances = {}
+    for name in methods:
+        try:
+            method = METHODS[name][0]()
+            method.name = name
+            instances[name] = PrepareOnce(method)
+        except ImportError as e:
+            print(f"{name}: skipped: {e} (install the 'baselines' extra)", flush=True)
+    runs = {lv: {m: MethodRun(m, {}, []) for m in instances} for lv in levels}
+    objects: dict[str, list[ObjectData]] = {lv: [] for lv in levels}
+    failed: set[str] = set()
+    for src in sources:
+        for level in levels:
+            t0 = time.perf_counter()
+            seeds = [src.seed_base + i for i in range(views)]
+            obj = load_object(src.mesh, seeds, name=src.name, occluders=occluders if level == "clean" else 0, stress=level)
+            print(f"{src.name} @ {level}: {views} views rendered in {time.perf_counter() - t0:.1f} s "
+                  f"(visible {np.mean(obj.visible):.2f}, spill {np.mean(obj.spill):.2f})", flush=True)  # fmt: skip
+            for name, method in instances.items():
+                if name in failed:
+                    continue
+                subset = obj
+                if peer_views is not None and is_peer(name):
+                    n = min(peer_views, views)
+                    subset = dataclasses.replace(obj, seeds=obj.seeds[:n], clouds=obj.clouds[:n], poses=obj.poses[:n],
+                                                 visible=obj.visible[:n], spill=obj.spill[:n])  # fmt: skip
+                try:
+                    t0 = time.perf_counter()
+                    method.prepare(src.mesh)  # timed here once per object; a no-op at later levels
+                    method.prepare_s.setdefault(src.name, time.perf_counter() - t0)
+                    run = run_views(method, [subset])
+                except Exception:
+                    traceback.print_exc()
+                    print(f"  skipped {name}: it failed outside estimate()", flush=True)
+                    failed.add(name)
+                    continue
+                s = summarise(run.views)
+                print(f"  {name:<18} ADD(-S) {s.add_or_s_pass:5.1f}%  ADD-S {s.add_s_pass:5.1f}%  "
+                      f"median {s.median_ms:7.0f} ms  ({s.views} views)", flush=True)  # fmt: skip
+                runs[level][name].views += run.views
+                runs[level][name].prepare_s[src.name] = method.prepare_s[src.name]
+            objects[level].append(dataclasses.replace(obj, clouds=[]))
+    kept = {lv: [r for m, r in by_method.items() if m not in failed and r.views] for lv, by_method in runs.items()}
+    return kept, objects
 
 
 # ----------------------------------------------------------------- summaries
@@ -181,46 +304,109 @@ def tables(runs: list[MethodRun], objects: list[ObjectData]) -> tuple[str, str, 
     return "\n".join(overall), "\n".join(per_object), reference
 
 
+def level_table(runs: list[MethodRun], peer_views: int | None) -> str:
+    """One stress level: accuracy and latency per method."""
+    lines = [
+        "| method | views | ADD(-S) < 0.1d | ADD-S < 0.1d | AUC ADD(-S) | median ms | p90 ms |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in runs:
+        s = summarise(r.views)
+        note = f" (first {peer_views} views per object)" if peer_views is not None and is_peer(r.name) else ""
+        fails = f" ({s.failures} errors)" if s.failures else ""
+        lines.append(
+            f"| {r.name}{fails}{note} | {s.views} | {s.add_or_s_pass:.1f} % | {s.add_s_pass:.1f} % | {s.auc_add_or_s:.1f} "
+            f"| {s.median_ms:.0f} | {s.p90_ms:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def stress_summary(runs: dict[str, list[MethodRun]], objects: dict[str, list[ObjectData]], methods: list[str]) -> str:
+    """Rows: stress levels with their achieved mean visible and spill
+    fractions (over every rendered view); columns: each method's ADD(-S)."""
+    lines = [
+        "| stress level | mean visible fraction | mean spill fraction | " + " | ".join(f"{m} ADD(-S)" for m in methods) + " |",
+        "| --- | ---: | ---: | " + " | ".join("---:" for _ in methods) + " |",
+    ]
+    for level, by_level in runs.items():
+        visible = np.nanmean([x for o in objects[level] for x in o.visible])
+        spill = np.mean([x for o in objects[level] for x in o.spill])
+        found = {r.name: summarise(r.views) for r in by_level}
+        cells = [f"{found[m].add_or_s_pass:.1f} % ({found[m].views})" if m in found else "–" for m in methods]
+        lines.append(f"| {level} | {visible:.2f} | {spill:.2f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 # ----------------------------------------------------------------- outputs
 
 
-def write_views_csv(path: Path, runs: list[MethodRun]) -> None:
+def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[str, list[ObjectData]]) -> None:
     fields = [
-        "method", "object", "view", "seed", "points", "latency_ms", "add_mm", "add_s_mm", "add_or_s_mm",
-        "rotation_deg", "translation_mm", "diameter_mm", "correct_add_s", "correct_add_or_s", "score", "error",
+        "stress", "method", "object", "view", "seed", "visible_fraction", "spill_fraction", "points", "latency_ms",
+        "add_mm", "add_s_mm", "add_or_s_mm", "rotation_deg", "translation_mm", "diameter_mm", "correct_add_s",
+        "correct_add_or_s", "score", "error",
     ]  # fmt: skip
     with path.open("w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(fields)
-        for r in runs:
-            for v in r.views:
-                e = v.errors
-                writer.writerow(
-                    [
-                        v.method, v.object, v.view, v.seed, v.points, f"{v.latency_s * 1e3:.3f}",
-                        f"{e.add * 1e3:.3f}", f"{e.add_s * 1e3:.3f}", f"{e.add_or_s * 1e3:.3f}",
-                        f"{e.rotation_deg:.3f}", f"{e.translation_mm:.3f}", f"{e.diameter * 1e3:.3f}",
-                        int(e.correct_add_s), int(e.correct_add_or_s), f"{v.score:.6g}", v.error,
-                    ]
-                )  # fmt: skip
+        for level, by_level in runs.items():
+            scenes = {o.name: o for o in objects[level]}
+            for r in by_level:
+                for v in r.views:
+                    e, o = v.errors, scenes[v.object]
+                    writer.writerow(
+                        [
+                            level, v.method, v.object, v.view, v.seed, f"{o.visible[v.view]:.4f}", f"{o.spill[v.view]:.4f}",
+                            v.points, f"{v.latency_s * 1e3:.3f}", f"{e.add * 1e3:.3f}", f"{e.add_s * 1e3:.3f}",
+                            f"{e.add_or_s * 1e3:.3f}", f"{e.rotation_deg:.3f}", f"{e.translation_mm:.3f}",
+                            f"{e.diameter * 1e3:.3f}", int(e.correct_add_s), int(e.correct_add_or_s), f"{v.score:.6g}",
+                            v.error,
+                        ]
+                    )  # fmt: skip
 
 
-def write_bop(path: Path, run: MethodRun) -> None:
-    """BOP rows: scene 0, image = the view's seed, YCB-Video object ids."""
-    every = sorted(p.stem for p in YCB.glob("*.ply"))
+def write_bop(path: Path, runs: dict[str, MethodRun], obj_ids: dict[str, int]) -> None:
+    """BOP rows of one method: scene = the stress level's index in
+    STRESS_LEVELS, image = the view's seed, YCB-Video object ids (others 100 + k)."""
+    order = list(STRESS_LEVELS)
     rows = [
         BopRow(
-            scene_id=0,
+            scene_id=order.index(level),
             im_id=v.seed,
-            obj_id=YCBV_OBJ_ID.get(v.object, 100 + every.index(v.object)),
+            obj_id=obj_ids[v.object],
             score=v.score,
             R=v.T_est[:3, :3],
             t=v.T_est[:3, 3],
             time=v.latency_s,
         )
+        for level, run in runs.items()
         for v in run.views
     ]
     write_bop_csv(path, rows)
+
+
+def plot_stress(runs: dict[str, list[MethodRun]], methods: list[str], path: Path) -> None:
+    """ADD(-S) per stress level, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    levels = list(runs)
+    fig, ax = plt.subplots(figsize=(max(6.4, 0.75 * len(levels) + 2), 4.4))
+    for m in methods:
+        y = [next((summarise(r.views).add_or_s_pass for r in runs[lv] if r.name == m), np.nan) for lv in levels]
+        ax.plot(range(len(levels)), y, marker="o", label=m)
+    ax.set_xticks(range(len(levels)), levels, rotation=30, ha="right")
+    ax.set_xlabel("stress level")
+    ax.set_ylabel("ADD(-S) < 0.1 × diameter, % of views")
+    ax.set_ylim(-2, 102)
+    ax.set_title("Accuracy under stress")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def plot(runs: list[MethodRun], scatter_path: Path, cdf_path: Path) -> None:
@@ -316,16 +502,33 @@ def command_line() -> str:
 def write_markdown(
     path: Path,
     args: argparse.Namespace,
-    runs: list[MethodRun],
-    objects: list[ObjectData],
+    runs: dict[str, list[MethodRun]],
+    objects: dict[str, list[ObjectData]],
+    methods: list[str],
     load: tuple[tuple[float, ...], tuple[float, ...]],
     wall_s: float,
     extra_files: dict[str, Path],
 ) -> str:
-    overall, per_object, reference = tables(runs, objects)
-    symmetric = ", ".join(o.name for o in objects if o.symmetric) or "none"
-    described = "\n".join(f"- **{r.name}**: {METHODS[r.name][1]}" for r in runs)
-    text = f"""# Pose benchmark: edgepose and its peers
+    first = next(iter(runs))
+    overall, per_object, reference = tables(runs[first], objects[first])
+    objs = objects[first]
+    symmetric = ", ".join(o.name for o in objs if o.symmetric) or "none"
+    described = "\n".join(f"- **{m}**: {METHODS[m][1]}" for m in methods)
+    levels = "\n".join(f"- `{lv}`: {STRESS_LEVELS[lv].description}" for lv in runs)
+    per_level = "\n\n".join(f"### Stress level `{lv}`\n\n{level_table(rs, args.peer_views)}" for lv, rs in runs.items())
+    if args.tune:
+        kind = (f"{len(objs)} tuning objects (CAD parts from `../shared/data/train_shapes/cad/`, disjoint from the "
+                f"reported YCB objects, each scaled to a diameter drawn in {TUNE_DIAMETER[0] * 100:.0f}–"
+                f"{TUNE_DIAMETER[1] * 100:.0f} cm: "
+                + ", ".join(f"{o.name} {o.diameter * 100:.1f} cm" for o in objs) + f"); seeds from {TUNE_SEED_BASE}")  # fmt: skip
+    elif args.meshes:
+        kind = f"{len(objs)} objects from `--meshes` ({', '.join(o.name for o in objs)})"
+    else:
+        kind = f"{len(objs)} YCB objects ({', '.join(o.name for o in objs)})"
+    peers = (f" Peers (methods other than edgepose*) ran on the first {args.peer_views} views of each object only "
+             "(the `views` columns say how many)." if args.peer_views is not None else "")  # fmt: skip
+    title = "Tuning benchmark (not the reported figures)" if args.tune else "Pose benchmark: edgepose and its peers"
+    text = f"""# {title}
 
 Generated by `benches/bench_pose.py`; do not edit by hand.
 
@@ -339,31 +542,51 @@ Generated by `benches/bench_pose.py`; do not edit by hand.
 - software: {versions()}
 - wall time of the whole run: {wall_s / 60:.1f} min
 
-**Setup.** {len(objects)} YCB objects ({", ".join(o.name for o in objects)}), {args.views} views each,
-rendered once by `edgepose.eval.render_view` (LINEMOD camera 640×480, object 0.45–0.9 m away,
-uniformly random rotation, depth noise 1 mm, 1 mm quantisation, 2 % dropout, {args.occluders} occluders,
-perfect segmentation) from seeds derived from `--seed {args.seed}`; every method gets the identical
-clouds. A pose is correct when its error is below 0.1 × the object's diameter. ADD(-S) uses ADD-S for
-the geometrically symmetric objects ({symmetric}) and ADD otherwise. AUC is the YCB-Video area under
-the accuracy curve for thresholds 0–10 cm (× 100). Latency is the wall-clock time of one `estimate`
-call (cloud in, 4×4 pose out) after one untimed warm-up call per object; "prepare" is the per-object
-preparation (model sampling + features, PPF training, or codebook build). A method error counts as
-a miss with the identity pose.
+**Setup.** {kind}, {args.views} views each per stress level, from seeds derived from `--seed {args.seed}`
+(the same seeds at every level: one seed is one pose at every level with the same distance range); every
+method gets the identical clouds.{peers} Level `clean` is `edgepose.eval.render_view` (LINEMOD camera
+640×480, object 0.45–0.9 m away, uniformly random rotation, depth noise 1 mm, 1 mm quantisation, 2 %
+dropout, {args.occluders} occluders, perfect segmentation, no background), identical to earlier runs; the
+other levels are `edgepose.eval.scenes.render_scene` scenes: the object in front of a support plane
+(2–6 cm behind it, tilted up to 30°) beside 1–3 boxes/cylinders, with the level's occluder, sensor
+noise and detector mask:
+
+{levels}
+
+A pose is correct when its error is below 0.1 × the object's diameter. ADD(-S) uses ADD-S for the
+geometrically symmetric objects ({symmetric}) and ADD otherwise. AUC is the YCB-Video area under the
+accuracy curve for thresholds 0–10 cm (× 100). Latency is the wall-clock time of one `estimate` call
+(cloud in, 4×4 pose out) after one untimed warm-up call per object and level; "prepare" is the
+per-object preparation (model sampling + features, PPF training, or codebook build), done once per
+object for all levels. A method error counts as a miss with the identity pose.
 
 **Methods.**
 {described}
 
-## All objects
+## Stress summary: ADD(-S) < 0.1d per level
+
+Visible fraction: visible object pixels / the object's pixels alone (occlusion); spill fraction: cloud
+points off the object / points on it (mask spill). Parentheses: views.
+
+{stress_summary(runs, objects, methods)}
+
+![ADD(-S) per stress level]({extra_files["stress"].name})
+
+## Per stress level
+
+{per_level}
+
+## Stress level `{first}`: all objects
 
 {overall}
 
 Latency ratio: median latency of the method divided by that of **{reference}** (> 1 = slower).
 
-## Per object
+## Stress level `{first}`: per object
 
 {per_object}
 
-## Plots
+## Plots (stress level `{first}`)
 
 ![latency vs accuracy]({extra_files["scatter"].name})
 
@@ -371,16 +594,17 @@ Latency ratio: median latency of the method divided by that of **{reference}** (
 
 ## Files
 
-- per-view errors: `{extra_files["views"].name}`
-- BOP results per method: {", ".join(f"`{p.name}`" for k, p in extra_files.items() if k.startswith("bop:"))}
+- per-view errors with their stress level: `{extra_files["views"].name}`
+- BOP results per method (scene_id = the stress level's index in `STRESS_LEVELS`: {", ".join(f"{i} {n}" for i, n in enumerate(STRESS_LEVELS))}):
+  {", ".join(f"`{p.name}`" for k, p in extra_files.items() if k.startswith("bop:"))}
 
 ## Notes
 
 - Timings come from a shared 2-core machine on which other work may run at the same time (see the
   load averages above); compare medians and ratios rather than single views. Each method uses both
   cores where it can (Open3D: OpenMP; OpenCV's PPF matcher is single-threaded in the pip wheels).
-- Views are synthetic (clean geometry, perfect masks): absolute accuracies are upper bounds for
-  real sensors; the comparison between methods is the point.
+- Views are synthetic: even the stressed levels are idealised (exact geometry, simple noise models);
+  absolute accuracies are upper bounds for real sensors; the comparison between methods is the point.
 """
     path.write_text(text)
     return text
@@ -388,16 +612,20 @@ Latency ratio: median latency of the method divided by that of **{reference}** (
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--views", type=int, default=DEFAULT_VIEWS, help="views per object")
+    parser.add_argument("--views", type=int, default=DEFAULT_VIEWS, help="views per object and stress level")
     parser.add_argument(
         "--methods",
         default=None,
         help=f"comma-separated, from {', '.join(METHODS)} (default: edgepose when available, open3d, opencv-ppf)",
     )
     parser.add_argument("--objects", default=None, help="comma-separated YCB names (default: all five)")
+    parser.add_argument("--stress", default=",".join(STRESS_LEVELS), help="comma-separated stress levels (default: all)")
+    parser.add_argument("--peer-views", type=int, default=None, help="views per object for the peers (default: --views)")
+    parser.add_argument("--tune", action="store_true", help="tuning objects (CAD parts, not YCB) -> benches/TUNING.md")
+    parser.add_argument("--meshes", default=None, help="comma-separated mesh files or folders instead of YCB")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--occluders", type=int, default=0, help="occluding rectangles per view")
-    parser.add_argument("--out", type=Path, default=REPO / "benches" / "RESULTS.md")
+    parser.add_argument("--occluders", type=int, default=0, help="occluding rectangles per view (clean level only)")
+    parser.add_argument("--out", type=Path, default=None, help="default benches/RESULTS.md (--tune: benches/TUNING.md)")
     args = parser.parse_args()
 
     if args.methods:
@@ -409,49 +637,48 @@ def main() -> None:
             parser.error("this edgepose build has no build_codebook()/estimate() yet")
     else:
         methods = (["edgepose"] if available_edgepose() else []) + ["open3d", "opencv-ppf"]
-    all_objects = sorted(p.stem for p in YCB.glob("*.ply"))
-    names = [o.strip() for o in args.objects.split(",")] if args.objects else all_objects
-    missing = [n for n in names if n not in all_objects]
-    if missing:
-        parser.error(f"no mesh for {missing} in {YCB}")
+    levels = [lv.strip() for lv in args.stress.split(",") if lv.strip()]
+    unknown = [lv for lv in levels if lv not in STRESS_LEVELS]
+    if unknown or not levels:
+        parser.error(f"unknown stress levels {unknown}; choose from {list(STRESS_LEVELS)}")
+    if args.tune and (args.meshes or args.objects):
+        parser.error("--tune picks its own objects: no --meshes or --objects with it")
+    results = REPO / "benches" / "RESULTS.md"
+    out = (args.out or (REPO / "benches" / ("TUNING.md" if args.tune else "RESULTS.md"))).resolve()
+    if (args.tune or args.meshes) and out == results.resolve():
+        parser.error(f"--tune/--meshes never write the reported figures ({results}); choose another --out")
+    sources = load_sources(args, parser)
 
     load_before = os.getloadavg()
     started = time.perf_counter()
-    print(f"rendering {args.views} views of {len(names)} objects ...", flush=True)
-    objects = load_objects(names, args.views, args.seed, args.occluders)
-    runs = []
-    for name in methods:
-        print(f"{name}:", flush=True)
-        try:
-            runs.append(run_method(name, objects))
-        except ImportError as e:
-            print(f"  skipped: {e} (install the 'baselines' extra)", flush=True)
-        except Exception:
-            traceback.print_exc()
-            print(f"  skipped {name}: it failed outside estimate()", flush=True)
-    if not runs:
+    print(f"{args.views} views of {len(sources)} objects at {len(levels)} stress levels: {', '.join(levels)}", flush=True)
+    runs, objects = run_all(sources, levels, methods, args.views, args.peer_views, args.occluders)
+    ran = [m for m in methods if any(r.name == m for rs in runs.values() for r in rs)]
+    if not ran:
         sys.exit("no method ran")
 
-    out = args.out.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     stem = out.stem
     files = {
         "views": out.with_name(f"{stem}_views.csv"),
+        "stress": out.with_name(f"{stem}_stress.png"),
         "scatter": out.with_name(f"{stem}_latency_vs_adds.png"),
         "cdf": out.with_name(f"{stem}_adds_cdf.png"),
     }
-    write_views_csv(files["views"], runs)
-    for r in runs:
-        files[f"bop:{r.name}"] = out.with_name(f"{stem}_bop_{r.name}.csv")
-        write_bop(files[f"bop:{r.name}"], r)
-    plot(runs, files["scatter"], files["cdf"])
+    write_views_csv(files["views"], runs, objects)
+    obj_ids = {s.name: s.obj_id for s in sources}
+    for m in ran:
+        files[f"bop:{m}"] = out.with_name(f"{stem}_bop_{m}.csv")
+        write_bop(files[f"bop:{m}"], {lv: r for lv, rs in runs.items() for r in rs if r.name == m}, obj_ids)
+    plot_stress(runs, ran, files["stress"])
+    first = next(iter(runs))
+    plot(runs[first], files["scatter"], files["cdf"])
     wall = time.perf_counter() - started
-    write_markdown(out, args, runs, objects, (load_before, os.getloadavg()), wall, files)
-    overall, per_object, _ = tables(runs, objects)
+    write_markdown(out, args, runs, objects, ran, (load_before, os.getloadavg()), wall, files)
     print()
-    print(overall)
-    print()
-    print(per_object)
+    print(stress_summary(runs, objects, ran))
+    for level, rs in runs.items():
+        print(f"\n{level}:\n{level_table(rs, args.peer_views)}")
     print(f"\nwrote {out} and {', '.join(p.name for p in files.values())} ({wall / 60:.1f} min)")
 
 
