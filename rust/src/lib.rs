@@ -11,7 +11,9 @@ pub mod model;
 pub mod refine;
 pub mod rng;
 pub mod sampling;
+pub mod scoring;
 pub mod search;
+pub mod segment;
 pub mod views;
 pub mod visibility;
 
@@ -30,3 +32,5 @@ pub use views::{fibonacci_directions, view_rotation, viewpoints, Rotation};
 pub use visibility::visible_mask;
 pub use refine::{IcpResult, ModelIndex, Pose};
 pub use search::{top_k, verify};
+pub use scoring::{score_poses, DepthGrid, PoseScore, ScoreSettings};
+pub use segment::{segment, SegmentSettings, Segmentation};

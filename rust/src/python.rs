@@ -20,6 +20,8 @@ use rayon::prelude::*;
 use crate::error::GeometryError;
 use crate::views::Rotation;
 use crate::refine::{ModelIndex, Pose};
+use crate::scoring::{score_poses, DepthGrid, ScoreSettings};
+use crate::segment::{segment, SegmentSettings};
 use crate::{grouping, maps, model, sampling, search, views, visibility, Point3};
 
 pyo3::import_exception!(edgepose.errors, InternalError);
@@ -299,6 +301,26 @@ fn top_k<'py>(
     })
 }
 
+/// Which points of an observed cloud (camera frame, metres) belong to an
+/// object `diameter` metres across (statistical outliers and components
+/// split off by depth jumps removed): `(keep (N,) bool, spacing)`, spacing
+/// being the median nearest-neighbour distance in metres.
+#[pyfunction]
+fn segment_object<'py>(
+    py: Python<'py>,
+    cloud: PyReadonlyArray2<'py, f32>,
+    diameter: f64,
+) -> PyResult<(Bound<'py, PyArray1<bool>>, f64)> {
+    guarded(|| {
+        let c = triples(&cloud, "cloud")?;
+        if !(diameter.is_finite() && diameter > 0.0) {
+            return Err(PyValueError::new_err(format!("diameter must be a positive number of metres, got {diameter}")));
+        }
+        let found = py.detach(|| segment(c, diameter, &SegmentSettings::default()));
+        Ok((PyArray1::from_vec(py, found.keep), found.spacing))
+    })
+}
+
 /// A model's points and normals (model frame, metres) with a kd-tree, for
 /// verification and ICP. Immutable: safe to share between threads.
 #[pyclass(frozen, name = "ModelIndex", module = "edgepose._core")]
@@ -337,6 +359,46 @@ impl PyModelIndex {
             let k = triples(&keypoints, "keypoints")?;
             let poses = poses_from(&rotations, &translations)?;
             Ok(PyArray1::from_vec(py, py.detach(|| search::verify(&self.inner, k, &poses))))
+        })
+    }
+
+    /// Scores each candidate pose (model → camera: `rotations` (C, 3, 3),
+    /// `translations` (C, 3)) against the `observed` points and the whole
+    /// observed `cloud` (camera frame, metres; its point `spacing` sizes the
+    /// free-space grid): `(fit (C,) metres, inlier_fraction (C,),
+    /// free_space_violation (C,))` (see the core's `scoring` module).
+    #[allow(clippy::too_many_arguments)]
+    fn score<'py>(
+        &self,
+        py: Python<'py>,
+        observed: PyReadonlyArray2<'py, f32>,
+        cloud: PyReadonlyArray2<'py, f32>,
+        spacing: f64,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+        inlier_distance: f64,
+        free_space_tolerance: f64,
+        model_stride: usize,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        guarded(|| {
+            let o = triples(&observed, "observed")?;
+            let c = triples(&cloud, "cloud")?;
+            let poses = poses_from(&rotations, &translations)?;
+            if ![spacing, inlier_distance, free_space_tolerance].iter().all(|v| v.is_finite() && *v >= 0.0) {
+                return Err(PyValueError::new_err("spacing and distances must be finite and non-negative"));
+            }
+            let settings = ScoreSettings { inlier_distance, free_space_tolerance, model_stride };
+            let scores = py.detach(|| {
+                let grid = DepthGrid::new(c, spacing, 2.0);
+                score_poses(&self.inner, o, &grid, &poses, &settings)
+            });
+            (
+                PyArray1::from_vec(py, scores.iter().map(|s| s.fit).collect()),
+                PyArray1::from_vec(py, scores.iter().map(|s| s.inlier_fraction).collect()),
+                PyArray1::from_vec(py, scores.iter().map(|s| s.free_space_violation).collect()),
+            )
+                .into_pyobject(py)
+                .map(|t| t.into_any())
         })
     }
 
@@ -387,6 +449,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(map_neighbours, m)?)?;
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
+    m.add_function(wrap_pyfunction!(segment_object, m)?)?;
     m.add_class::<PyModelIndex>()?;
     m.add_function(wrap_pyfunction!(_panic_for_tests, m)?)?;
     Ok(())

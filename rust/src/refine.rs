@@ -67,6 +67,16 @@ impl ModelIndex {
         self.points.is_empty()
     }
 
+    /// The model's points, model frame, metres.
+    pub fn points(&self) -> &[Point3] {
+        &self.points
+    }
+
+    /// The model's unit outward normals, one per point.
+    pub fn normals(&self) -> &[Point3] {
+        &self.normals
+    }
+
     /// Index and squared distance of the model point nearest to `p` (model frame).
     pub fn nearest(&self, p: &[f32; 3]) -> (usize, f32) {
         let nn = self.tree.nearest_one::<SquaredEuclidean>(p);

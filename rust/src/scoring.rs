@@ -1,0 +1,257 @@
+//! How well a candidate pose explains what the camera saw, with terms that
+//! stay honest when part of the object is hidden or the mask spilled:
+//!
+//! * **fit**: mean distance from observed points to the posed model,
+//!   each distance truncated at the inlier distance, so background points
+//!   that the mask picked up cost a bounded amount instead of dominating;
+//! * **inlier fraction**: the share of observed points within the inlier
+//!   distance of the posed model;
+//! * **free-space violation**: the camera sits at the cloud's origin, so
+//!   every observed point says its ray was empty up to it. A camera-facing
+//!   model point that lands in front of the nearest observation along its
+//!   ray, by more than a tolerance, contradicts the view. Surface fit alone
+//!   cannot tell a turned-over pose whose back hugs the observed surface
+//!   while its other side sticks out towards the camera; this can. Hidden
+//!   parts (behind an occluder, outside the mask) are unknown space and
+//!   never count.
+//!
+//! Camera frame (OpenCV), metres.
+
+use nalgebra::Vector3;
+
+use crate::refine::{ModelIndex, Pose};
+use crate::Point3;
+
+/// The observed depth by viewing direction: the nearest observed depth in
+/// each cell of a grid over the normalised image plane `(x/z, y/z)`.
+pub struct DepthGrid {
+    cell: f64,
+    u0: f64,
+    v0: f64,
+    cols: usize,
+    rows: usize,
+    nearest: Vec<f32>,
+}
+
+/// Cells per side at most: bounds memory whatever the cloud's spread.
+const MAX_GRID_SIDE: usize = 512;
+
+impl DepthGrid {
+    /// Grid of `cloud` (camera frame, metres) with cells of about `cells_per_point`
+    /// times the cloud's point `spacing` (metres) at its median depth, so
+    /// that an observed surface fills its cells without gaps.
+    pub fn new(cloud: &[Point3], spacing: f64, cells_per_point: f64) -> Self {
+        let front: Vec<(f64, f64, f32)> =
+            cloud.iter().filter(|p| p[2] > 0.0).map(|p| (p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64, p[2])).collect();
+        if front.is_empty() {
+            return Self { cell: 1.0, u0: 0.0, v0: 0.0, cols: 0, rows: 0, nearest: Vec::new() };
+        }
+        let mut depths: Vec<f32> = front.iter().map(|p| p.2).collect();
+        let mid = depths.len() / 2;
+        let median_depth = *depths.select_nth_unstable_by(mid, f32::total_cmp).1 as f64;
+        let (mut u0, mut u1, mut v0, mut v1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+        for &(u, v, _) in &front {
+            (u0, u1, v0, v1) = (u0.min(u), u1.max(u), v0.min(v), v1.max(v));
+        }
+        let span = (u1 - u0).max(v1 - v0);
+        let cell = (cells_per_point * spacing / median_depth).max(span / MAX_GRID_SIDE as f64).max(1e-9);
+        let cols = ((u1 - u0) / cell) as usize + 1;
+        let rows = ((v1 - v0) / cell) as usize + 1;
+        let mut nearest = vec![f32::INFINITY; cols * rows];
+        for &(u, v, z) in &front {
+            let i = ((v - v0) / cell) as usize * cols + ((u - u0) / cell) as usize;
+            nearest[i] = nearest[i].min(z);
+        }
+        Self { cell, u0, v0, cols, rows, nearest }
+    }
+
+    /// The nearest observed depth (metres) along the ray through `p`
+    /// (camera frame), or `None` where nothing was observed.
+    pub fn observed_depth(&self, p: &Vector3<f64>) -> Option<f64> {
+        if p.z <= 0.0 {
+            return None;
+        }
+        let (cu, cv) = ((p.x / p.z - self.u0) / self.cell, (p.y / p.z - self.v0) / self.cell);
+        if cu < 0.0 || cv < 0.0 || cu >= self.cols as f64 || cv >= self.rows as f64 {
+            return None;
+        }
+        let z = self.nearest[cv as usize * self.cols + cu as usize];
+        z.is_finite().then_some(z as f64)
+    }
+}
+
+/// Distances of [`score_poses`], metres.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ScoreSettings {
+    /// An observed point within this distance of the posed model is an
+    /// inlier; farther ones count this much in `fit`.
+    pub inlier_distance: f64,
+    /// A model point this much in front of the observed depth violates free space.
+    pub free_space_tolerance: f64,
+    /// Every `model_stride`-th model point takes part in the free-space test.
+    pub model_stride: usize,
+}
+
+/// The terms of one pose; see the module documentation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseScore {
+    /// Mean truncated distance from the observed points to the model, metres.
+    pub fit: f64,
+    /// Share of observed points within the inlier distance, 0–1.
+    pub inlier_fraction: f64,
+    /// Share of the camera-facing model points on observed rays that lie in
+    /// front of the observation, 0–1 (0 when no model point is on an observed ray).
+    pub free_space_violation: f64,
+}
+
+/// Scores each pose (model → camera) against `observed` points and the
+/// `grid` of the whole observed cloud.
+pub fn score_poses(index: &ModelIndex, observed: &[Point3], grid: &DepthGrid, poses: &[Pose], settings: &ScoreSettings) -> Vec<PoseScore> {
+    poses.iter().map(|pose| score_pose(index, observed, grid, pose, settings)).collect()
+}
+
+fn score_pose(index: &ModelIndex, observed: &[Point3], grid: &DepthGrid, pose: &Pose, settings: &ScoreSettings) -> PoseScore {
+    let to_model = pose.inverse();
+    let (mut total, mut inliers) = (0.0f64, 0usize);
+    for p in observed {
+        let m = to_model.apply(p);
+        let d = (index.nearest(&[m.x as f32, m.y as f32, m.z as f32]).1 as f64).sqrt();
+        if d <= settings.inlier_distance {
+            inliers += 1;
+        }
+        total += d.min(settings.inlier_distance);
+    }
+    let (mut on_rays, mut violations) = (0usize, 0usize);
+    let stride = settings.model_stride.max(1);
+    for (p, n) in index.points().iter().zip(index.normals()).step_by(stride) {
+        let pc = pose.apply(p);
+        let nc = pose.rotation * Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+        if nc.dot(&pc) >= 0.0 {
+            continue; // faces away from the camera: hidden by the object itself
+        }
+        if let Some(z) = grid.observed_depth(&pc) {
+            on_rays += 1;
+            if pc.z < z - settings.free_space_tolerance {
+                violations += 1;
+            }
+        }
+    }
+    let count = observed.len().max(1) as f64;
+    PoseScore {
+        fit: total / count,
+        inlier_fraction: inliers as f64 / count,
+        free_space_violation: if on_rays == 0 { 0.0 } else { violations as f64 / on_rays as f64 },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Matrix3, Rotation3};
+
+    /// Points and outward normals of an axis-aligned box's surface, `spacing` apart.
+    fn box_surface(centre: [f32; 3], half: [f32; 3], spacing: f32) -> (Vec<Point3>, Vec<Point3>) {
+        let (mut points, mut normals) = (Vec::new(), Vec::new());
+        for axis in 0..3 {
+            let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+            let (na, nb) = ((2.0 * half[a] / spacing) as usize + 1, (2.0 * half[b] / spacing) as usize + 1);
+            for sign in [-1.0f32, 1.0] {
+                for i in 0..na {
+                    for j in 0..nb {
+                        let mut p = centre;
+                        p[axis] += sign * half[axis];
+                        p[a] += -half[a] + 2.0 * half[a] * i as f32 / (na - 1).max(1) as f32;
+                        p[b] += -half[b] + 2.0 * half[b] * j as f32 / (nb - 1).max(1) as f32;
+                        let mut n = [0.0f32; 3];
+                        n[axis] = sign;
+                        points.push(p);
+                        normals.push(n);
+                    }
+                }
+            }
+        }
+        (points, normals)
+    }
+
+    /// A 10 × 10 × 1 cm plate with a 2 × 2 × 3 cm knob on its +z face.
+    /// Seen from −z (knob hidden behind), the plate turned over about y puts
+    /// its other face exactly where the seen face was: every observed point
+    /// still lies on the model, but the knob now juts towards the camera.
+    fn plate_with_knob() -> (Vec<Point3>, Vec<Point3>) {
+        let (mut points, mut normals) = box_surface([0.0; 3], [0.05, 0.05, 0.005], 0.002);
+        let (p, n) = box_surface([0.0, 0.0, 0.02], [0.01, 0.01, 0.015], 0.002);
+        points.extend(p);
+        normals.extend(n);
+        (points, normals)
+    }
+
+    fn posed(points: &[Point3], normals: &[Point3], pose: &Pose, camera_facing_only: bool) -> Vec<Point3> {
+        points
+            .iter()
+            .zip(normals)
+            .filter(|(p, n)| {
+                let pc = pose.apply(p);
+                let nc = pose.rotation * Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+                !camera_facing_only || nc.dot(&pc) < 0.0
+            })
+            .map(|(p, _)| {
+                let v = pose.apply(p);
+                [v.x as f32, v.y as f32, v.z as f32]
+            })
+            .collect()
+    }
+
+    fn settings() -> ScoreSettings {
+        ScoreSettings { inlier_distance: 0.005, free_space_tolerance: 0.005, model_stride: 1 }
+    }
+
+    #[test]
+    fn the_grid_returns_the_nearest_depth_on_a_ray() {
+        let cloud: Vec<Point3> = vec![[0.0, 0.0, 0.5], [0.0, 0.0, 0.7], [0.1, 0.0, 0.5]];
+        let grid = DepthGrid::new(&cloud, 0.01, 2.0);
+        assert_eq!(grid.observed_depth(&Vector3::new(0.0, 0.0, 0.3)), Some(0.5));
+        assert_eq!(grid.observed_depth(&Vector3::new(0.0, 0.0, -0.3)), None, "behind the camera");
+        assert_eq!(grid.observed_depth(&Vector3::new(0.0, 0.5, 0.5)), None, "outside what was seen");
+    }
+
+    #[test]
+    fn free_space_rejects_a_flipped_pose_that_surface_fit_cannot() {
+        let (points, normals) = plate_with_knob();
+        let index = ModelIndex::new(points.clone(), normals.clone());
+        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
+        let cloud = posed(&points, &normals, &truth, true);
+        let flip = Pose { rotation: *Rotation3::from_euler_angles(0.0, std::f64::consts::PI, 0.0).matrix(), ..truth };
+        let grid = DepthGrid::new(&cloud, 0.002, 2.0);
+        let scores = score_poses(&index, &cloud, &grid, &[truth, flip], &settings());
+        assert!(scores[0].inlier_fraction > 0.999 && scores[1].inlier_fraction > 0.999, "{scores:?}");
+        assert!((scores[0].fit - scores[1].fit).abs() < 1e-4, "surface fit alone should not tell them apart: {scores:?}");
+        assert!(scores[0].free_space_violation < 0.005, "{scores:?}");
+        assert!(scores[1].free_space_violation > 0.03, "{scores:?}");
+    }
+
+    #[test]
+    fn hidden_model_parts_are_not_violations() {
+        let (points, normals) = plate_with_knob();
+        let index = ModelIndex::new(points.clone(), normals.clone());
+        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
+        // An occluder hides the half x > 0: those rays carry no observation.
+        let cloud: Vec<Point3> = posed(&points, &normals, &truth, true).into_iter().filter(|p| p[0] < 0.0).collect();
+        let grid = DepthGrid::new(&cloud, 0.002, 2.0);
+        let score = score_poses(&index, &cloud, &grid, &[truth], &settings())[0];
+        assert!(score.free_space_violation < 0.01 && score.inlier_fraction > 0.99, "{score:?}");
+    }
+
+    #[test]
+    fn background_points_cost_a_bounded_amount() {
+        let (points, normals) = plate_with_knob();
+        let index = ModelIndex::new(points.clone(), normals.clone());
+        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
+        let mut cloud = posed(&points, &normals, &truth, true);
+        let object = cloud.len();
+        cloud.extend((0..object / 4).map(|i| [-0.1 + 0.0002 * i as f32, 0.08, 0.6]));
+        let grid = DepthGrid::new(&cloud, 0.002, 2.0);
+        let score = score_poses(&index, &cloud, &grid, &[truth], &settings())[0];
+        assert!((score.inlier_fraction - object as f64 / cloud.len() as f64).abs() < 0.01, "{score:?}");
+        assert!(score.fit <= 0.005 * 0.21, "{score:?}");
+    }
+}
