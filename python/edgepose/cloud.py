@@ -23,6 +23,13 @@ MAX_EXTENT_DIAMETERS = 5.0
 MIN_EXTENT_DIAMETERS = 0.02
 #: Rows checked at a time: validation never copies a large cloud whole.
 _CHUNK_ROWS = 1 << 16
+#: ``cloud_from_depth`` drops a pixel whose depth differs from a neighbour's
+#: by more than this fraction of its depth: a depth discontinuity, where
+#: sensors return "flying" pixels with a depth between the two surfaces.
+#: 0.01 is 7 mm at 0.7 m: a surface seen at up to ~80° from head-on keeps
+#: its pixels; the wall behind an object, and the pixels between, do not.
+#: Measured on the tuning set (benches/TUNING.md).
+FLYING_PIXEL_JUMP = 0.01
 
 
 def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.ndarray:
@@ -127,13 +134,22 @@ def cloud_from_depth(
     K: np.ndarray,
     mask: np.ndarray | None = None,
     depth_scale: float = 1000.0,
+    *,
+    max_jump: float | None = FLYING_PIXEL_JUMP,
+    erode_px: int = 0,
 ) -> np.ndarray:
     """(N, 3) float64 camera-frame points (metres) of the pixels with a valid
     depth (and ``mask`` true, when given), in row-major order.
 
     ``K`` is the 3×3 pinhole matrix; a pixel (row v, column u) has its centre
     at (u, v) (OpenCV). ``depth / depth_scale`` is metres, as in Open3D:
-    1000 for uint16 millimetre images, 1 for float metres."""
+    1000 for uint16 millimetre images, 1 for float metres.
+
+    Detector masks and depth edges are imperfect, so by default pixels at a
+    depth discontinuity (a neighbour's depth differs by more than
+    ``max_jump`` × their depth; ``None`` keeps them) are dropped: flying
+    pixels and the first pixels of a surface behind. ``erode_px`` shrinks the
+    mask by that many pixels first (a mask known to spill)."""
     depth = np.asarray(depth)
     K = pinhole_matrix(K)
     if depth.ndim != 2:
@@ -142,15 +158,70 @@ def cloud_from_depth(
         raise InvalidCloudError(f"depth must hold numbers, got dtype {depth.dtype}")
     if not (np.isfinite(depth_scale) and depth_scale > 0):
         raise InvalidCloudError(f"depth_scale must be a positive number (depth units per metre), got {depth_scale}")
+    if max_jump is not None and not (np.isfinite(max_jump) and max_jump > 0):
+        raise InvalidCloudError(f"max_jump must be a positive fraction of the depth or None, got {max_jump}")
+    if not (isinstance(erode_px, (int, np.integer)) and erode_px >= 0):
+        raise InvalidCloudError(f"erode_px must be a non-negative whole number of pixels, got {erode_px!r}")
     z = depth.astype(np.float64) / depth_scale
-    valid = np.isfinite(z) & (z > 0)
+    measured = np.isfinite(z) & (z > 0)
+    valid = measured.copy()
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != depth.shape:
             raise InvalidCloudError(f"mask shape {mask.shape} differs from depth shape {depth.shape}")
-        valid &= mask
+        valid &= erode(mask, erode_px) if erode_px else mask
+    if max_jump is not None:
+        valid &= ~depth_discontinuities(z, measured, valid, max_jump)
     v, u = np.nonzero(valid)
     z = z[v, u]
     x = (u - K[0, 2]) * z / K[0, 0]
     y = (v - K[1, 2]) * z / K[1, 1]
     return np.stack([x, y, z], axis=1)
+
+
+def depth_discontinuities(z: np.ndarray, measured: np.ndarray, where: np.ndarray, max_jump: float) -> np.ndarray:
+    """(H, W) bool: pixels of ``where`` with a ``measured`` 8-neighbour whose
+    depth differs from theirs by more than ``max_jump`` × their depth ``z``.
+    Only the bounding box of ``where`` is examined (fast for one object's mask)."""
+    edges = np.zeros(z.shape, dtype=bool)
+    rows, cols = np.nonzero(where)
+    if len(rows) == 0:
+        return edges
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    box_z = np.where(measured, z, np.nan)[max(r0 - 1, 0) : r1 + 1, max(c0 - 1, 0) : c1 + 1]
+    padded = np.pad(box_z, 1, constant_values=np.nan)
+    centre = padded[1:-1, 1:-1]
+    jump = np.zeros(centre.shape, dtype=bool)
+    h, w = centre.shape
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                neighbour = padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+                with np.errstate(invalid="ignore"):
+                    jump |= np.abs(neighbour - centre) > max_jump * centre  # NaN compares False
+    top, left = r0 - max(r0 - 1, 0), c0 - max(c0 - 1, 0)
+    edges[r0:r1, c0:c1] = jump[top : top + (r1 - r0), left : left + (c1 - c0)] & where[r0:r1, c0:c1]
+    return edges
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``mask`` grown by a Euclidean disk of ``radius`` pixels (numpy shifts)."""
+    mask = np.asarray(mask, dtype=bool)
+    if radius <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    padded = np.pad(mask, radius)
+    out = np.zeros_like(mask)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dy * dy + dx * dx <= radius * radius:
+                out |= padded[radius + dy : radius + dy + h, radius + dx : radius + dx + w]
+    return out
+
+
+def erode(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``mask`` shrunk by a Euclidean disk of ``radius`` pixels (outside the image counts as outside)."""
+    mask = np.asarray(mask, dtype=bool)
+    if radius <= 0:
+        return mask.copy()
+    return ~dilate(~np.pad(mask, radius), radius)[radius:-radius, radius:-radius] & mask

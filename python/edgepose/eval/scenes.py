@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from edgepose.cloud import cloud_from_depth
+from edgepose.cloud import cloud_from_depth, dilate, erode
 from edgepose.eval.render import LINEMOD_CAMERA, Camera, random_pose, rasterize_depth, render_view
 
 if TYPE_CHECKING:
@@ -263,27 +263,6 @@ def noise_sigma(stress: Stress, z: np.ndarray) -> np.ndarray:
     """Std (metres) of the depth noise of ``stress``'s model at depths ``z`` (metres)."""
     z = np.asarray(z, dtype=np.float64)
     return 0.0012 + 0.0019 * (z - 0.4) ** 2 if stress.noise == "kinect" else np.full(z.shape, stress.depth_noise)
-
-
-def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    """``mask`` grown by a Euclidean disk of ``radius`` pixels (numpy shifts)."""
-    mask = np.asarray(mask, dtype=bool)
-    if radius <= 0:
-        return mask.copy()
-    h, w = mask.shape
-    padded = np.pad(mask, radius)
-    out = np.zeros_like(mask)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            if dy * dy + dx * dx <= radius * radius:
-                out |= padded[radius + dy : radius + dy + h, radius + dx : radius + dx + w]
-    return out
-
-
-def erode(mask: np.ndarray, radius: int) -> np.ndarray:
-    """``mask`` shrunk by a Euclidean disk of ``radius`` pixels (outside the image counts as outside)."""
-    mask = np.asarray(mask, dtype=bool)
-    return ~dilate(~np.pad(mask, radius), radius)[radius:-radius, radius:-radius] & mask
 
 
 def _plain_view(mesh, stress: Stress, seed: int, T_cam_obj, camera: Camera) -> SceneView:
