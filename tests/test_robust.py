@@ -42,8 +42,8 @@ def test_flying_pixels_at_depth_edges_are_dropped():
     assert edges[mixed].all(), "every mixed pixel differs from both of its sides"
     assert not edges[erode(obj, 1)].any(), "the object's inside has no discontinuity"
     assert not edges[spilled & ~dilate(obj, 3)].any(), "the flat wall beyond the edge has none"
-    cloud = edgepose.cloud_from_depth(depth, K, spilled, depth_scale=1.0)
-    kept = edgepose.cloud_from_depth(depth, K, spilled, depth_scale=1.0, max_jump=None)
+    cloud = edgepose.cloud_from_depth(depth, K, spilled, depth_scale=1.0, max_jump=FLYING_PIXEL_JUMP)
+    kept = edgepose.cloud_from_depth(depth, K, spilled, depth_scale=1.0)
     assert len(kept) == spilled.sum() and len(cloud) == spilled.sum() - edges.sum()
     # No kept point lies between the two surfaces.
     assert not ((cloud[:, 2] > 0.605) & (cloud[:, 2] < 0.645)).any()

@@ -37,6 +37,15 @@ def top_k(
     codes: npt.NDArray[np.float32], query: npt.NDArray[np.float32], k: int
 ) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
 
+def segment_object(
+    cloud: npt.NDArray[np.float32],
+    diameter: float,
+    shadow_spacings: float = 4.0,
+    max_shadowed_fraction: float = 0.5,
+    min_component_fraction: float = 0.01,
+    max_component_offset: float = 0.8,
+) -> tuple[npt.NDArray[np.bool_], float]: ...
+
 class ModelIndex:
     def __init__(self, points: npt.NDArray[np.float32], normals: npt.NDArray[np.float32]) -> None: ...
     def __len__(self) -> int: ...
@@ -46,6 +55,25 @@ class ModelIndex:
         rotations: npt.NDArray[np.float64],
         translations: npt.NDArray[np.float64],
     ) -> npt.NDArray[np.float64]: ...
+    def align_translations(
+        self,
+        observed: npt.NDArray[np.float32],
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        iterations: int,
+        max_distance: float,
+    ) -> npt.NDArray[np.float64]: ...
+    def score(
+        self,
+        observed: npt.NDArray[np.float32],
+        cloud: npt.NDArray[np.float32],
+        spacing: float,
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        inlier_distance: float,
+        free_space_tolerance: float,
+        model_stride: int,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
     def refine(
         self,
         cloud: npt.NDArray[np.float32],

@@ -1,52 +1,36 @@
 """``estimate(cloud, codebook)``: the 6D pose of an object from its segmented
-depth cloud (../shared/DESIGN.md, step 7).
+depth cloud (../shared/DESIGN.md, step 7), as five named stages:
 
-1. clean the cloud; its centroid gives the ray to the object;
-2. turn the cloud so that ray is the optical axis (viewpoint correction),
-   centre, scale and resample it to a map;
-3. encode the map; cosine top-K over the codebook's codes (Rust);
-4. in-plane angle of each candidate (IRR head, one batched call);
-5. verify each candidate pose by how close the map's keypoints land to the
-   model (Rust kd-tree); the closest wins;
-6. translation from the centroids; unless ``refine=False``, point-to-plane
-   ICP against the model (Rust) from the best few distinct candidates,
-   keeping the best fit (this tells a near-symmetric object's
-   turned-over pose from the true one).
+1. :func:`prepare_query` — keep the points that are the object (outliers,
+   flying pixels and background a spilled mask picked up are dropped), turn
+   the cloud so its centroid ray is the optical axis, centre, scale and
+   resample it to a map;
+2. :func:`retrieve` — encode the map, cosine top-K over the codebook's
+   codes (Rust), the in-plane angle of each candidate (IRR head);
+3. :func:`candidate_poses` — each candidate view and angle as a pose;
+4. :func:`score_poses` — how well each pose explains the view: truncated
+   keypoint distances to the model and free-space violations (Rust);
+5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
+   distinct candidates, scored again; the best one is polished.
+
+Every tuning value lives in :class:`edgepose.settings.EstimateSettings`.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from edgepose import _core
-from edgepose.cloud import clean_cloud
+from edgepose.cloud import MIN_POINTS, clean_cloud
 from edgepose.codebook import Codebook, CodebookError
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.maps import normalize_to_map
-from edgepose.views import ray_alignment
-
-#: Clouds larger than this are subsampled (seeded) first: bounded time and memory, and
-#: 2,048 points already cover an object densely for a 512-point map.
-MAX_CLOUD_POINTS = 2048
-#: Points of the cloud used by ICP.
-ICP_POINTS = 1024
-#: ICP converges in tens of iterations; more is a caller's mistake, not a wish.
-MAX_ICP_ITERATIONS = 1000
-#: Keypoints (the first farthest-point samples of the map) used to verify candidates.
-KEYPOINTS = 32
-#: Distinct candidate poses refined by ICP; the lowest fit wins. A
-#: near-symmetric object (a bottle turned about its axis) verifies almost equally
-#: well either way up; the ICP fit of each hypothesis tells them apart.
-HYPOTHESES = 3
-#: Points and ICP iterations used to compare the hypotheses; the winner is then
-#: refined with ``ICP_POINTS`` points and the caller's iterations.
-HYPOTHESIS_POINTS = 256
-HYPOTHESIS_ITERATIONS = 10
-#: Candidate rotations closer than this (degrees) to a kept one are the same hypothesis.
-DISTINCT_DEG = 20.0
+from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
+from edgepose.views import ray_alignment, rotation_about_z
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,20 +44,29 @@ class Pose:
     score: float
     """Cosine similarity of the chosen view's code to the observed one (1 is best)."""
     fit: float
-    """Mean distance (metres) from the observed points to the model at this pose:
-    the verification distance of the keypoints, or, when refined, the point-to-plane
-    RMSE of the ICP inliers of the best-fitting hypothesis."""
+    """Mean distance (metres) from the observed points to the model at this
+    pose, each truncated at the inlier distance (``settings.hypothesis_inlier_distance``
+    × diameter when refined, else the candidates' looser one)."""
     view: int
     """Index of the chosen codebook viewpoint."""
     candidates: np.ndarray
     """(K,) viewpoint indices of the cosine top-K, best code first."""
     candidate_fit: np.ndarray
-    """(K,) keypoint verification distance of each candidate, metres."""
+    """(K,) truncated keypoint distance of each candidate pose, metres."""
     timings: dict = field(default_factory=dict)
     """Seconds per stage: prepare, encode, search, irr, verify, refine, total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
-    points near the model); ``fit`` is then an ICP RMSE."""
+    points near the model)."""
+    inlier_fraction: float = 0.0
+    """Share of the observed points within the inlier distance of the model at this pose, 0–1."""
+    free_space_violation: float = 0.0
+    """Share of the model's camera-facing points on observed rays that lie in
+    front of what the camera saw there (by more than the tolerance), 0–1:
+    high means the pose contradicts the view."""
+    kept_points: int = 0
+    """Observed points that :func:`prepare_query` kept as the object (of at
+    most ``settings.max_cloud_points``)."""
 
     @property
     def matrix(self) -> np.ndarray:
@@ -81,6 +74,230 @@ class Pose:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = self.R, self.t
         return T
+
+
+@dataclass(frozen=True, eq=False)
+class Query:
+    """An observed cloud made ready for the codebook (stage 1)."""
+
+    points: np.ndarray
+    """(N, 3) float32 camera-frame points kept as the object, metres."""
+    spacing: float
+    """Median distance between neighbouring points, metres (sizes the free-space grid)."""
+    centroid: np.ndarray
+    """(3,) float64 centroid of ``points``."""
+    r_corr: np.ndarray
+    """(3, 3) viewpoint correction: camera frame → frame whose +z is the centroid ray."""
+    map: np.ndarray
+    """(M, 3) float32 the corrected, centred, scaled and resampled map."""
+    keypoints: np.ndarray
+    """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
+
+
+class PoseScores(NamedTuple):
+    """Stage 4's terms per pose (see ``rust/src/scoring.rs``); lower ``cost`` is better."""
+
+    fit: np.ndarray
+    inlier_fraction: np.ndarray
+    free_space_violation: np.ndarray
+    cost: np.ndarray
+    """fit / inlier distance + free_space_weight × free_space_violation."""
+
+
+def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> Query:
+    """Stage 1: the object's points of ``cloud`` (camera frame, metres) and its map."""
+    model = codebook.model
+    points = clean_cloud(cloud, model.diameter, settings.max_cloud_points).astype(np.float32)
+    spacing = 0.0
+    if settings.segment:
+        keep, spacing = _core.segment_object(
+            points, model.diameter, settings.shadow_spacings, settings.max_shadowed_fraction,
+            settings.min_component_fraction, settings.max_component_offset,
+        )  # fmt: skip
+        if keep.sum() >= MIN_POINTS:
+            points = np.ascontiguousarray(points[keep])
+    centroid = points.mean(axis=0, dtype=np.float64)
+    r_corr = ray_alignment(centroid)
+    corrected = ((points - centroid) @ r_corr.T).astype(np.float32)
+    query_map, _ = normalize_to_map(corrected, model.scale, codebook.map_points)
+    keypoints = (query_map[: settings.keypoints] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(np.float32)
+    return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
+
+
+def retrieve(query: Query, codebook: Codebook, encoder: Encoder, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Stage 2: ``(candidates (k,), similarities (k,), in-plane angles (k,) radians, timings)``."""
+    t0 = time.perf_counter()
+    code, spectrum = encoder.encode(query.map[None])
+    t1 = time.perf_counter()
+    candidates, similarity = _core.top_k(codebook.codes, code[0], k)
+    candidates = candidates.astype(np.intp)
+    t2 = time.perf_counter()
+    angles = encoder.in_plane_angles(spectrum[0], codebook.spectra[candidates]).astype(np.float64)
+    t3 = time.perf_counter()
+    return candidates, similarity, angles, {"encode": t1 - t0, "search": t2 - t1, "irr": t3 - t2}
+
+
+def candidate_poses(
+    query: Query,
+    codebook: Codebook,
+    candidates: np.ndarray,
+    angles: np.ndarray,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 3: model frame → camera poses ``(R (k, 3, 3), t (k, 3))``:
+    ``R = R_corrᵀ · Rz(θ) · R_view``; the translation from the centroids,
+    then moved so the keypoints land on the model."""
+    rotations = query.r_corr.T @ rotation_about_z(angles) @ codebook.viewpoints.rotations[candidates]
+    translations = query.centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
+    if settings.align_iterations > 0:
+        translations = codebook.index.align_translations(
+            query.keypoints, rotations, translations, settings.align_iterations,
+            settings.candidate_inlier_distance * codebook.model.diameter,
+        )  # fmt: skip
+    return rotations, translations
+
+
+def score_poses(
+    query: Query,
+    codebook: Codebook,
+    observed: np.ndarray,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    inlier_distance: float,
+    free_space_weight: float,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> PoseScores:
+    """Stage 4: the terms of each pose against the ``observed`` points (camera
+    frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
+    d = codebook.model.diameter
+    fit, inliers, violation = codebook.index.score(
+        observed, query.points, query.spacing, np.ascontiguousarray(rotations), np.ascontiguousarray(translations),
+        inlier_distance, settings.free_space_tolerance * d, settings.free_space_model_stride,
+    )  # fmt: skip
+    cost = fit / inlier_distance + free_space_weight * violation
+    return PoseScores(fit, inliers, violation, cost)
+
+
+class Refined(NamedTuple):
+    """Stage 5's outcome: the chosen pose (model frame → camera) and its terms."""
+
+    index: int
+    """Which candidate it started from."""
+    R: np.ndarray
+    t: np.ndarray
+    scores: PoseScores
+    """The chosen pose's terms (arrays of one)."""
+    refined: bool
+
+
+def refine_hypotheses(
+    query: Query,
+    codebook: Codebook,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    candidate_cost: np.ndarray,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> Refined | None:
+    """Stage 5: coarse ICP from the ``settings.hypotheses`` best distinct
+    candidates, each scored again. Hypotheses that explain nearly as many
+    points as the best and violate free space little more than the least
+    violating compete; the lowest ICP RMSE wins and is polished by a longer
+    ICP. None when no ICP found enough points."""
+    d = codebook.model.diameter
+    coarse = _subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
+    starts = distinct_hypotheses(rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg)
+    max_distance = settings.icp_max_distance * d
+    hyp_R, hyp_t, _, _, inliers, rmse = codebook.index.refine(
+        coarse, rotations[starts], translations[starts], settings.hypothesis_iterations, max_distance
+    )
+    usable = np.isfinite(rmse) & (inliers >= settings.min_icp_inliers)
+    if not usable.any():
+        return None
+    inlier_distance = settings.hypothesis_inlier_distance * d
+    scores = score_poses(query, codebook, coarse, hyp_R, hyp_t, inlier_distance, 0.0, settings)
+    explains = scores.inlier_fraction >= settings.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
+    free = scores.free_space_violation <= scores.free_space_violation[usable].min() + settings.hypothesis_free_space_margin
+    competing = usable & explains & free
+    pick = int(np.argmin(np.where(competing, rmse, np.inf)))
+    best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
+    if settings.icp_iterations > 0:
+        fine_R, fine_t, _, _, fine_inliers, fine_rmse = codebook.index.refine(
+            _subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
+            hyp_R[pick : pick + 1], hyp_t[pick : pick + 1], settings.icp_iterations, max_distance,
+        )  # fmt: skip
+        if fine_inliers[0] >= settings.min_icp_inliers and np.isfinite(fine_rmse[0]):
+            fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
+            best = Refined(best.index, fine_R[0], fine_t[0], fine, True)
+    return best
+
+
+def estimate(
+    cloud: object,
+    codebook: Codebook,
+    *,
+    refine: bool = True,
+    k: int | None = None,
+    encoder: Encoder | None = None,
+    icp_iterations: int | None = None,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> Pose:
+    """The pose ``T_cam_obj`` of ``codebook``'s object in ``cloud``: an (N, 3)
+    array of camera-frame points in metres (float32/64, or anything with
+    ``.points``), segmented to that object (a detector's mask that spills onto
+    the background is fine: such points are dropped). Deterministic: the same
+    input gives the same pose.
+
+    ``settings`` holds every tuning value; ``k`` (codebook views verified) and
+    ``icp_iterations`` (final ICP polish; 0: the hypotheses' coarse ICP only)
+    are shortcuts for its fields; ``refine=False`` skips ICP."""
+    settings = settings.with_(
+        **{name: value for name, value in (("k", k), ("icp_iterations", icp_iterations)) if value is not None}
+    )
+    encoder = encoder or default_encoder()
+    if encoder.fingerprint != codebook.fingerprint:
+        raise CodebookError(
+            f"the codebook was built by encoder {codebook.fingerprint[:12]}…, a different encoder than the "
+            f"one given ({encoder.fingerprint[:12]}…); rebuild the codebook with it"
+        )
+    if not 1 <= settings.k <= len(codebook):
+        raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {settings.k}")
+    if not 0 <= settings.icp_iterations <= MAX_ICP_ITERATIONS:
+        raise ValueError(f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {settings.icp_iterations}")
+    model = codebook.model
+    t0 = time.perf_counter()
+    query = prepare_query(cloud, codebook, settings)
+    t1 = time.perf_counter()
+    candidates, similarity, angles, retrieve_timings = retrieve(query, codebook, encoder, settings.k)
+    t2 = time.perf_counter()
+    rotations, translations = candidate_poses(query, codebook, candidates, angles, settings)
+    candidate_scores = score_poses(
+        query, codebook, query.keypoints, rotations, translations, settings.candidate_inlier_distance * model.diameter,
+        settings.candidate_free_space_weight, settings,
+    )  # fmt: skip
+    chosen = int(np.argmin(candidate_scores.cost))
+    result = Refined(chosen, rotations[chosen], translations[chosen],
+                     PoseScores(*(s[chosen : chosen + 1] for s in candidate_scores)), False)  # fmt: skip
+    t3 = time.perf_counter()
+    if refine:
+        result = refine_hypotheses(query, codebook, rotations, translations, candidate_scores.cost, settings) or result
+    t4 = time.perf_counter()
+
+    # Model frame = object (mesh) frame shifted by the model centre.
+    t_obj = result.t - result.R @ model.centre
+    return Pose(
+        R=result.R,
+        t=t_obj,
+        score=float(similarity[result.index]),
+        fit=float(result.scores.fit[0]),
+        view=int(candidates[result.index]),
+        candidates=candidates,
+        candidate_fit=candidate_scores.fit,
+        timings={"prepare": t1 - t0, **retrieve_timings, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0},
+        refined=result.refined,
+        inlier_fraction=float(result.scores.inlier_fraction[0]),
+        free_space_violation=float(result.scores.free_space_violation[0]),
+        kept_points=len(query.points),
+    )
 
 
 def _subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
@@ -102,102 +319,3 @@ def distinct_hypotheses(rotations: np.ndarray, order: np.ndarray, count: int, mi
             if len(kept) == count:
                 break
     return np.asarray(kept, dtype=np.intp)
-
-
-def estimate(
-    cloud: object,
-    codebook: Codebook,
-    *,
-    refine: bool = True,
-    k: int = 16,
-    encoder: Encoder | None = None,
-    icp_iterations: int = 20,
-) -> Pose:
-    """The pose ``T_cam_obj`` of ``codebook``'s object in ``cloud``: an (N, 3)
-    array of camera-frame points in metres (float32/64, or anything with
-    ``.points``), segmented to that object. Deterministic: the same input
-    gives the same pose.
-
-    ``k`` codebook views are verified; ``refine=False`` skips ICP;
-    ``icp_iterations`` bounds the final ICP polish of the best hypothesis
-    (0: the hypotheses' coarse ICP only)."""
-    encoder = encoder or default_encoder()
-    if encoder.fingerprint != codebook.fingerprint:
-        raise CodebookError(
-            f"the codebook was built by encoder {codebook.fingerprint[:12]}…, a different encoder than the "
-            f"one given ({encoder.fingerprint[:12]}…); rebuild the codebook with it"
-        )
-    if not 1 <= k <= len(codebook):
-        raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {k}")
-    if not 0 <= icp_iterations <= MAX_ICP_ITERATIONS:
-        raise ValueError(f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {icp_iterations}")
-    model = codebook.model
-    t0 = time.perf_counter()
-
-    points = clean_cloud(cloud, model.diameter, MAX_CLOUD_POINTS)
-    centroid = points.mean(axis=0)
-    r_corr = ray_alignment(centroid)
-    corrected = ((points - centroid) @ r_corr.T).astype(np.float32)
-    query_map, _ = normalize_to_map(corrected, model.scale, codebook.map_points)
-    t1 = time.perf_counter()
-
-    code, spectrum = encoder.encode(query_map[None])
-    t2 = time.perf_counter()
-    candidates, similarity = _core.top_k(codebook.codes, code[0], k)
-    candidates = candidates.astype(np.intp)
-    t3 = time.perf_counter()
-    angles = encoder.in_plane_angles(spectrum[0], codebook.spectra[candidates]).astype(np.float64)
-    t4 = time.perf_counter()
-
-    # Candidate poses, model frame → camera: R = R_corrᵀ · Rz(θ) · R_view.
-    c, s = np.cos(angles), np.sin(angles)
-    rz = np.zeros((len(angles), 3, 3))
-    rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
-    rotations = r_corr.T @ rz @ codebook.viewpoints.rotations[candidates]
-    translations = centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
-    keypoints = (query_map[:KEYPOINTS] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(np.float32)
-    fit = codebook.index.verify(np.ascontiguousarray(keypoints, dtype=np.float32), rotations, translations)
-    chosen = int(np.argmin(fit))
-    rotation, translation, best_fit = rotations[chosen], translations[chosen], float(fit[chosen])
-    refined = False
-    t5 = time.perf_counter()
-
-    if refine:
-        cloud_f32 = points.astype(np.float32)
-        coarse = _subsample(cloud_f32, HYPOTHESIS_POINTS, seed=1)
-        starts = distinct_hypotheses(rotations, np.argsort(fit, kind="stable"), HYPOTHESES, DISTINCT_DEG)
-        max_distance = 0.1 * model.diameter
-        hyp_R, hyp_t, _, _, inliers, rmse = codebook.index.refine(
-            coarse, rotations[starts], translations[starts], HYPOTHESIS_ITERATIONS, max_distance
-        )
-        # Compare fits only between hypotheses that explain (nearly) as many points.
-        usable = np.isfinite(rmse) & (inliers >= max(16, 0.9 * inliers.max()))
-        if usable.any():
-            pick = int(np.argmin(np.where(usable, rmse, np.inf)))
-            chosen, refined = int(starts[pick]), True
-            rotation, translation, best_fit = hyp_R[pick], hyp_t[pick], float(rmse[pick])
-            if icp_iterations > 0:
-                fine_R, fine_t, _, _, fine_inliers, fine_rmse = codebook.index.refine(
-                    _subsample(cloud_f32, ICP_POINTS, seed=2), hyp_R[pick : pick + 1], hyp_t[pick : pick + 1],
-                    icp_iterations, max_distance,
-                )
-                if fine_inliers[0] >= 16 and np.isfinite(fine_rmse[0]):
-                    rotation, translation, best_fit = fine_R[0], fine_t[0], float(fine_rmse[0])
-    t6 = time.perf_counter()
-
-    # Model frame = object (mesh) frame shifted by the model centre.
-    t_obj = translation - rotation @ model.centre
-    return Pose(
-        R=rotation,
-        t=t_obj,
-        score=float(similarity[chosen]),
-        fit=best_fit,
-        view=int(candidates[chosen]),
-        candidates=candidates,
-        candidate_fit=fit,
-        timings={
-            "prepare": t1 - t0, "encode": t2 - t1, "search": t3 - t2, "irr": t4 - t3,
-            "verify": t5 - t4, "refine": t6 - t5, "total": t6 - t0,
-        },
-        refined=refined,
-    )

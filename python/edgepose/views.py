@@ -57,3 +57,12 @@ def ray_alignment(centroid: np.ndarray) -> np.ndarray:
     k = axis / s
     skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + s * skew + (1 - c) * skew @ skew
+
+
+def rotation_about_z(angles: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations by ``angles`` (radians, any shape) about the optical axis +z."""
+    angles = np.asarray(angles, dtype=np.float64)
+    c, s = np.cos(angles), np.sin(angles)
+    R = np.zeros((*angles.shape, 3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
+    return R

@@ -20,7 +20,7 @@ use rayon::prelude::*;
 use crate::error::GeometryError;
 use crate::views::Rotation;
 use crate::refine::{ModelIndex, Pose};
-use crate::scoring::{score_poses, DepthGrid, ScoreSettings};
+use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
 use crate::segment::{segment, SegmentSettings};
 use crate::{grouping, maps, model, sampling, search, views, visibility, Point3};
 
@@ -302,21 +302,28 @@ fn top_k<'py>(
 }
 
 /// Which points of an observed cloud (camera frame, metres) belong to an
-/// object `diameter` metres across (statistical outliers and components
-/// split off by depth jumps removed): `(keep (N,) bool, spacing)`, spacing
-/// being the median nearest-neighbour distance in metres.
+/// object `diameter` metres across (outliers and background components
+/// removed; see the core's `segment` module for `shadow_spacings` and
+/// `max_shadowed_fraction`): `(keep (N,) bool, spacing)`, spacing being the
+/// median nearest-neighbour distance in metres.
 #[pyfunction]
+#[pyo3(signature = (cloud, diameter, shadow_spacings = 4.0, max_shadowed_fraction = 0.5, min_component_fraction = 0.01, max_component_offset = 0.8))]
 fn segment_object<'py>(
     py: Python<'py>,
     cloud: PyReadonlyArray2<'py, f32>,
     diameter: f64,
+    shadow_spacings: f64,
+    max_shadowed_fraction: f64,
+    min_component_fraction: f64,
+    max_component_offset: f64,
 ) -> PyResult<(Bound<'py, PyArray1<bool>>, f64)> {
     guarded(|| {
         let c = triples(&cloud, "cloud")?;
         if !(diameter.is_finite() && diameter > 0.0) {
             return Err(PyValueError::new_err(format!("diameter must be a positive number of metres, got {diameter}")));
         }
-        let found = py.detach(|| segment(c, diameter, &SegmentSettings::default()));
+        let settings = SegmentSettings { shadow_spacings, max_shadowed_fraction, min_component_fraction, max_component_offset, ..SegmentSettings::default() };
+        let found = py.detach(|| segment(c, diameter, &settings));
         Ok((PyArray1::from_vec(py, found.keep), found.spacing))
     })
 }
@@ -359,6 +366,26 @@ impl PyModelIndex {
             let k = triples(&keypoints, "keypoints")?;
             let poses = poses_from(&rotations, &translations)?;
             Ok(PyArray1::from_vec(py, py.detach(|| search::verify(&self.inner, k, &poses))))
+        })
+    }
+
+    /// Each pose's translation moved so the `observed` points (camera frame)
+    /// land on the model (rotations kept): `translations (C, 3)`.
+    fn align_translations<'py>(
+        &self,
+        py: Python<'py>,
+        observed: PyReadonlyArray2<'py, f32>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+        iterations: usize,
+        max_distance: f64,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        guarded(|| {
+            let o = triples(&observed, "observed")?;
+            let poses = poses_from(&rotations, &translations)?;
+            let out = py.detach(|| align_translations(&self.inner, o, &poses, iterations, max_distance));
+            let t: Vec<f64> = out.iter().flat_map(|p| p.translation.as_slice().to_vec()).collect();
+            Ok(Array::from_shape_vec((out.len(), 3), t).expect("C × 3").into_pyarray(py))
         })
     }
 
