@@ -13,6 +13,14 @@ from edgepose.maps import DEFAULT_MAP_POINTS, visible_mask
 
 #: Observed views lie this close to their codebook view (2,100 views are ~4.4° apart).
 MAX_VIEW_OFFSET_DEG = 3.0
+#: Share of observed maps with something in front hiding part of the object,
+#: and the largest hidden fraction (real shelves and bins hide up to ~70 %).
+OCCLUSION_PROBABILITY = 0.7
+MAX_HIDDEN = 0.7
+#: Share of observed maps whose mask spilled onto a surface behind the
+#: object, and the most spilled points (fraction of the object's).
+SPILL_PROBABILITY = 0.2
+MAX_SPILL = 0.15
 
 
 @dataclass
@@ -56,13 +64,13 @@ def observe(model: edgepose.StandardModel, rotation: np.ndarray, rng: np.random.
     if rng.random() < 0.5:  # sensors sample grazing surfaces sparsely
         keep &= rng.random(len(points)) < np.clip(-normals[:, 2] * 1.2, 0.1, 1.0)
     keep &= rng.random(len(points)) < rng.uniform(0.5, 1.0)
-    if rng.random() < 0.5:  # something in front hides one side
-        a = rng.uniform(0, 2 * np.pi)
-        side = points[:, 0] * np.cos(a) + points[:, 1] * np.sin(a)
-        keep &= side <= np.quantile(side, 1.0 - rng.uniform(0.05, 0.3))
+    if rng.random() < OCCLUSION_PROBABILITY:
+        keep &= ~occluded(points, rng.uniform(0.0, MAX_HIDDEN), rng)
     if keep.sum() >= 64:
         points = points[keep]
     points = points.astype(np.float64)
+    if rng.random() < SPILL_PROBABILITY:
+        points = np.concatenate([points, spill(points, rng.uniform(0.0, MAX_SPILL), rng)])
     sigma = rng.uniform(0.0005, 0.003)  # metres, along the ray
     points[:, 2] += rng.normal(0.0, sigma, len(points))
     points[:, :2] += rng.normal(0.0, sigma / 3, (len(points), 2))
@@ -70,6 +78,31 @@ def observe(model: edgepose.StandardModel, rotation: np.ndarray, rng: np.random.
         points[:, 2] = np.round(points[:, 2] / 0.001) * 0.001
     scale = model.scale * (1.0 + rng.uniform(-0.03, 0.03))
     return edgepose.normalize_to_map(points.astype(np.float32), scale, m)[0]
+
+
+def occluded(points: np.ndarray, hidden: float, rng: np.random.Generator) -> np.ndarray:
+    """(N,) bool: the view-frame ``points`` hidden by an occluder in front,
+    about ``hidden`` of them: the side beyond a straight edge (a box's) or a
+    band across the object (a post's, a cylinder's), in a random direction."""
+    a = rng.uniform(0, 2 * np.pi)
+    side = points[:, 0] * np.cos(a) + points[:, 1] * np.sin(a)
+    if rng.random() < 0.6:
+        return side > np.quantile(side, 1.0 - hidden)
+    start = rng.uniform(0.0, 1.0 - hidden)
+    lo, hi = np.quantile(side, [start, start + hidden])
+    return (side >= lo) & (side <= hi)
+
+
+def spill(points: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """About ``fraction`` × N points of a surface 2–6 cm behind the view-frame
+    ``points``, just outside their silhouette: what a detector mask grown
+    over the background adds."""
+    count = int(fraction * len(points))
+    centre = points[:, :2].mean(axis=0)
+    picked = points[rng.integers(len(points), size=count)]
+    ring = centre + (picked[:, :2] - centre) * rng.uniform(1.02, 1.12, size=(count, 1))
+    depth = points[:, 2].max() + rng.uniform(0.02, 0.06)
+    return np.column_stack([ring, np.full(count, depth)])
 
 
 def sample_batch(

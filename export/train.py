@@ -160,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=CACHE_DIR)
     parser.add_argument("--resume", action="store_true", help="continue from <cache>/checkpoint.pt")
     parser.add_argument("--tiny", action="store_true", help="smoke run: 12 shapes, 3 steps")
+    parser.add_argument("--init", type=Path, help="fine-tune: start from the networks exported in this folder")
     args = parser.parse_args(argv)
     if args.tiny:
         args.steps, args.shapes_per_batch, args.views_per_shape, args.procedural = 3, 4, 4, 2
@@ -179,6 +180,12 @@ def main(argv: list[str] | None = None) -> int:
     params = list(encoder.parameters()) + list(irr.parameters())
     optimizer = torch.optim.AdamW(params, lr=args.lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=args.lr, total_steps=args.steps, pct_start=0.05)
+    if args.init is not None:
+        from export.reexport import load_into, weights_from_onnx
+
+        load_into(encoder, weights_from_onnx(args.init / "encoder.onnx"))
+        load_into(irr, weights_from_onnx(args.init / "irr.onnx"))
+        print(f"starting from the networks in {args.init}", flush=True)
     step = 0
     checkpoint = args.cache / "checkpoint.pt"
     if args.resume and checkpoint.exists():
@@ -218,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         "steps": args.steps, "shapes_per_batch": args.shapes_per_batch, "views_per_shape": args.views_per_shape,
         "shapes": len(models), "data": "shared/data/train_shapes (1,000 blobs + 26 CAD parts) + procedural; never YCB",
         "seed": args.seed, "seconds": round(time.perf_counter() - started),
+        "initialised_from": None if args.init is None else "the previously shipped networks (fine-tune)",
     }
     manifest = write_manifest(args.out, hashes, encoder, irr, training)
     print(f"exported to {args.out}: {manifest['parameters']['total']} parameters", flush=True)
