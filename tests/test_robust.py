@@ -14,7 +14,7 @@ from edgepose.cloud import FLYING_PIXEL_JUMP, depth_discontinuities, dilate, ero
 from edgepose.eval import pose_errors, render_scene
 from edgepose.cli import SHIPPED_DIR
 from edgepose.model import read_mesh
-from edgepose.pose import prepare_query
+from edgepose.pose import near_the_cloud, prepare_query
 
 K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
 
@@ -114,3 +114,16 @@ def test_estimate_on_stressed_scenes(drill, stress):
         assert 0.0 <= pose.free_space_violation <= 1.0 and 0.0 <= pose.inlier_fraction <= 1.0
         assert 32 <= pose.kept_points <= len(view.cloud)
     assert correct >= 4, f"{correct}/6 correct at {stress}"
+
+
+def test_poses_far_from_the_observed_points_are_not_plausible(drill):
+    mesh, codebook = drill
+    view = edgepose.eval.render_view(mesh, seed=4)
+    query = prepare_query(view.cloud, codebook)
+    radius = 1.0 / codebook.model.scale
+    true_centre = view.T_cam_obj[:3, 3] + view.T_cam_obj[:3, :3] @ codebook.model.centre
+    behind = true_centre + 2 * radius * query.centroid / np.linalg.norm(query.centroid)
+    beside = true_centre + [1.5 * radius, 0, 0]
+    assert near_the_cloud(query, codebook, np.stack([true_centre, behind, beside])).tolist() == [True, False, False]
+    pose = edgepose.estimate(view.cloud, codebook)
+    assert np.linalg.norm(pose.t + pose.R @ codebook.model.centre - query.centroid) <= 1.25 * radius

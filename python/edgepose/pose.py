@@ -210,7 +210,7 @@ def refine_hypotheses(
     hyp_R, hyp_t, _, _, inliers, rmse = codebook.index.refine(
         coarse, rotations[starts], translations[starts], settings.hypothesis_iterations, max_distance
     )
-    usable = np.isfinite(rmse) & (inliers >= settings.min_icp_inliers)
+    usable = np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
     if not usable.any():
         return None
     inlier_distance = settings.hypothesis_inlier_distance * d
@@ -225,10 +225,18 @@ def refine_hypotheses(
             _subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
             hyp_R[pick : pick + 1], hyp_t[pick : pick + 1], settings.icp_iterations, max_distance,
         )  # fmt: skip
-        if fine_inliers[0] >= settings.min_icp_inliers and np.isfinite(fine_rmse[0]):
+        if fine_inliers[0] >= settings.min_icp_inliers and np.isfinite(fine_rmse[0]) and near_the_cloud(query, codebook, fine_t, settings)[0]:
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
             best = Refined(best.index, fine_R[0], fine_t[0], fine, True)
     return best
+
+
+def near_the_cloud(query: Query, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS) -> np.ndarray:
+    """(H,) bool: whether each pose (model frame → camera, ``translations``
+    (H, 3) metres: where the model's centre lands) keeps the model's centre
+    within ``settings.max_centre_offset`` model radii of the observed centroid."""
+    radius = 1.0 / codebook.model.scale
+    return np.linalg.norm(translations - query.centroid, axis=1) <= settings.max_centre_offset * radius
 
 
 def estimate(

@@ -76,6 +76,11 @@ class EstimateSettings:
     """... and violate free space by at most this much more than the least
     violating one; among those the lowest ICP RMSE wins (a turned-over
     near-symmetric object fits a few per cent worse)."""
+    max_centre_offset: float = 1.25
+    """× the model's radius (its farthest point from its centre). Every
+    observed point of the object lies within one radius of the model's
+    centre, so a refined pose whose centre is farther from the observed
+    centroid than this (ICP drifting off, onto background) is not used."""
     icp_points: int = 1024
     """Observed points used by the final ICP polish of the winner."""
     icp_iterations: int = 20

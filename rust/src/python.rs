@@ -383,6 +383,9 @@ impl PyModelIndex {
         guarded(|| {
             let o = triples(&observed, "observed")?;
             let poses = poses_from(&rotations, &translations)?;
+            if !(max_distance.is_finite() && max_distance >= 0.0) {
+                return Err(PyValueError::new_err(format!("max_distance must be finite and non-negative, got {max_distance}")));
+            }
             let out = py.detach(|| align_translations(&self.inner, o, &poses, iterations, max_distance));
             let t: Vec<f64> = out.iter().flat_map(|p| p.translation.as_slice().to_vec()).collect();
             Ok(Array::from_shape_vec((out.len(), 3), t).expect("C × 3").into_pyarray(py))
