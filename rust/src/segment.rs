@@ -121,7 +121,21 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     for i in (0..n).filter(|&i| shadowed[i]) {
         shadowed_count[root_of[i]] += 1;
     }
-    let lit = |root: usize| size[root] > 0 && (shadowed_count[root] as f64) < settings.max_shadowed_fraction * size[root] as f64;
+    // A shadowed component (nearly) wholly inside the rest's silhouette is
+    // the object's own (a can's lid behind its rim); spill lies outside it,
+    // or only partly inside where the silhouette is concave.
+    let rays: Vec<[f64; 2]> = cloud.iter().map(|p| [p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64]).collect();
+    let mut lit_root = vec![false; n];
+    for root in (0..n).filter(|&r| size[r] > 0) {
+        lit_root[root] = (shadowed_count[root] as f64) < settings.max_shadowed_fraction * size[root] as f64 || {
+            let others: Vec<[f64; 2]> = (0..n).filter(|&i| inlier[i] && root_of[i] != root && cloud[i][2] > 0.0).map(|i| rays[i]).collect();
+            let hull = convex_hull(others);
+            let mine: Vec<usize> = (0..n).filter(|&i| inlier[i] && root_of[i] == root).collect();
+            let inside = mine.iter().filter(|&&i| inside_convex(&hull, rays[i])).count();
+            10 * inside >= 9 * mine.len()
+        };
+    }
+    let lit = |root: usize| lit_root[root];
     // The object: the largest lit component (ties to the lowest root, so the
     // result is deterministic), with lit components of some size near it.
     let largest = (0..n)
@@ -262,6 +276,38 @@ impl CellGrid {
     }
 }
 
+/// Convex hull of 2-D points, counter-clockwise (Andrew's monotone chain).
+fn convex_hull(mut points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
+    points.sort_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
+    points.dedup();
+    if points.len() < 3 {
+        return points;
+    }
+    let cross = |o: [f64; 2], a: [f64; 2], b: [f64; 2]| (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
+    let mut hull: Vec<[f64; 2]> = Vec::with_capacity(2 * points.len());
+    for pass in 0..2 {
+        let start = hull.len();
+        let ordered: Box<dyn Iterator<Item = &[f64; 2]>> = if pass == 0 { Box::new(points.iter()) } else { Box::new(points.iter().rev()) };
+        for &p in ordered {
+            while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0 {
+                hull.pop();
+            }
+            hull.push(p);
+        }
+        hull.pop();
+    }
+    hull
+}
+
+/// Whether `p` lies inside (or on) the counter-clockwise convex polygon `hull`.
+fn inside_convex(hull: &[[f64; 2]], p: [f64; 2]) -> bool {
+    hull.len() >= 3
+        && (0..hull.len()).all(|k| {
+            let (a, b) = (hull[k], hull[(k + 1) % hull.len()]);
+            (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]) >= 0.0
+        })
+}
+
 fn median_of(values: &[f64]) -> f64 {
     quantile(values, 0.5)
 }
@@ -352,6 +398,16 @@ mod tests {
         let object = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |x, _| x.abs() < 0.01);
         let keep = segment(&object, 0.14, &SegmentSettings::default()).keep;
         assert!(keep.iter().all(|&k| k));
+    }
+
+    #[test]
+    fn a_recessed_part_inside_the_silhouette_is_kept() {
+        // A can seen from above: a 1.5 cm rim ring at 0.6 m around a lid 1 cm deeper.
+        let rim = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |x, y| x.abs() < 0.035 && y.abs() < 0.035);
+        let lid = plane(0.61, 0.002, (-0.034, 0.034), (-0.034, 0.034), |_, _| false);
+        let cloud: Vec<Point3> = rim.iter().chain(&lid).copied().collect();
+        let keep = segment(&cloud, 0.14, &SegmentSettings::default()).keep;
+        assert!(keep.iter().all(|&k| k), "{} of {} kept", keep.iter().filter(|&&k| k).count(), keep.len());
     }
 
     #[test]
