@@ -354,7 +354,10 @@ def estimate(
         "fit": pose.fit,
         "view": pose.view,
         "refined": pose.refined,
+        "inlier_fraction": pose.inlier_fraction,
+        "free_space_violation": pose.free_space_violation,
         "points": int(len(points)),
+        "kept_points": pose.kept_points,
         "timings": pose.timings,
     }
     model_points = book.model.points.astype(np.float64) + book.model.centre

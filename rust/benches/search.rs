@@ -5,7 +5,8 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Rotation3, Unit, Vector3};
 
 use edgepose_core::rng::SplitMix64;
-use edgepose_core::{top_k, verify, ModelIndex, Point3, Pose};
+use edgepose_core::scoring::align_translations;
+use edgepose_core::{score_poses, segment, top_k, verify, DepthGrid, ModelIndex, Point3, Pose, ScoreSettings, SegmentSettings};
 
 fn unit_codes(views: usize, dim: usize, rng: &mut SplitMix64) -> Vec<f32> {
     let mut codes: Vec<f32> = (0..views * dim).map(|_| rng.next_f64() as f32 - 0.5).collect();
@@ -71,6 +72,41 @@ fn bench_search(c: &mut Criterion) {
     });
     let start = Pose { rotation: *Rotation3::from_euler_angles(0.05, -0.04, 0.03).matrix() * truth.rotation, translation: truth.translation + Vector3::new(0.004, -0.003, 0.002) };
     group.bench_function("icp_1024_points_20_iterations", |b| b.iter(|| index.refine(&cloud, start, 20, 0.02)));
+
+    // Real-scene steps: the camera-facing half of the box seen from the
+    // truth's camera (about 2,048 points with the spill ring below), and a
+    // spilled mask's ring of wall 4 cm behind it.
+    let seen: Vec<Point3> = index
+        .points()
+        .iter()
+        .zip(index.normals())
+        .filter(|(p, n)| {
+            let pc = truth.apply(p);
+            let nc = truth.rotation * Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+            nc.dot(&pc) < 0.0
+        })
+        .map(|(p, _)| {
+            let v = truth.apply(p);
+            [v.x as f32, v.y as f32, v.z as f32]
+        })
+        .collect();
+    let ring: Vec<Point3> = (0..2048 - seen.len().min(2048))
+        .map(|i| {
+            let a = i as f32 * 0.0061;
+            [0.02 + 0.075 * a.cos(), -0.01 + 0.075 * a.sin(), 0.64 + 0.0001 * (i % 7) as f32]
+        })
+        .collect();
+    let scene: Vec<Point3> = seen.iter().chain(&ring).copied().collect();
+    group.bench_function(&format!("segment_{}_points", scene.len()), |b| b.iter(|| segment(&scene, 0.12, &SegmentSettings::default())));
+    let spacing = segment(&scene, 0.12, &SegmentSettings::default()).spacing;
+    let settings = ScoreSettings { inlier_distance: 0.012, free_space_tolerance: 0.0036, model_stride: 4 };
+    group.bench_function("score_16_candidates_32_keypoints_free_space", |b| {
+        b.iter(|| {
+            let grid = DepthGrid::new(&seen, spacing, 2.0);
+            score_poses(&index, &keypoints, &grid, &candidates, &settings)
+        })
+    });
+    group.bench_function("align_16_candidates_32_keypoints_3_iterations", |b| b.iter(|| align_translations(&index, &keypoints, &candidates, 3, 0.012)));
     group.finish();
 }
 
