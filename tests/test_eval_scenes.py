@@ -14,7 +14,8 @@ from scipy.ndimage import distance_transform_edt
 import edgepose
 from edgepose.eval import LINEMOD_CAMERA, STRESS_LEVELS, Camera, SceneView, Stress, render_scene, render_view
 from edgepose.eval.render import rasterize_depth
-from edgepose.eval.scenes import dilate, erode, noise_sigma
+from edgepose.cloud import dilate, erode
+from edgepose.eval.scenes import noise_sigma
 
 #: LINEMOD's camera at a quarter of its resolution: 160 × 120.
 SMALL = Camera(572.4 / 4, 573.6 / 4, 325.3 / 4, 242.0 / 4, 160, 120)

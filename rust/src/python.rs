@@ -91,6 +91,13 @@ fn poses_from(rotations: &PyReadonlyArray3<'_, f64>, translations: &PyReadonlyAr
     Ok(r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect())
 }
 
+/// Translations (metres) as a (C, 3) float64 array.
+fn translations_array<'a, 'py>(py: Python<'py>, translations: impl ExactSizeIterator<Item = &'a nalgebra::Vector3<f64>>) -> Bound<'py, PyArray2<f64>> {
+    let c = translations.len();
+    let flat: Vec<f64> = translations.flat_map(|t| [t.x, t.y, t.z]).collect();
+    Array::from_shape_vec((c, 3), flat).expect("C × 3").into_pyarray(py)
+}
+
 fn points_array<'py>(py: Python<'py>, points: Vec<Point3>) -> Bound<'py, PyArray2<f32>> {
     let n = points.len();
     Array::from_shape_vec((n, 3), points.into_flattened()).expect("n × 3 elements").into_pyarray(py)
@@ -387,8 +394,7 @@ impl PyModelIndex {
                 return Err(PyValueError::new_err(format!("max_distance must be finite and non-negative, got {max_distance}")));
             }
             let out = py.detach(|| align_translations(&self.inner, o, &poses, iterations, max_distance));
-            let t: Vec<f64> = out.iter().flat_map(|p| p.translation.as_slice().to_vec()).collect();
-            Ok(Array::from_shape_vec((out.len(), 3), t).expect("C × 3").into_pyarray(py))
+            Ok(translations_array(py, out.iter().map(|p| &p.translation)))
         })
     }
 
@@ -451,10 +457,9 @@ impl PyModelIndex {
             let out = py.detach(|| self.inner.refine_each(c, &starts, max_iterations, max_distance));
             let h = out.len();
             let rot: Vec<f64> = out.iter().flat_map(|o| o.pose.rotation.transpose().as_slice().to_vec()).collect();
-            let tr: Vec<f64> = out.iter().flat_map(|o| o.pose.translation.as_slice().to_vec()).collect();
             (
                 Array::from_shape_vec((h, 3, 3), rot).expect("H × 3 × 3").into_pyarray(py),
-                Array::from_shape_vec((h, 3), tr).expect("H × 3").into_pyarray(py),
+                translations_array(py, out.iter().map(|o| &o.pose.translation)),
                 PyArray1::from_vec(py, out.iter().map(|o| o.iterations as u32).collect()),
                 PyArray1::from_vec(py, out.iter().map(|o| o.converged).collect()),
                 PyArray1::from_vec(py, out.iter().map(|o| o.inliers as u32).collect()),
