@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: demo test install build bench wheel train codebooks clean
+.PHONY: demo test lint install build bench wheel train codebooks clean
 
 $(BIN)/maturin:
 	$(PYTHON) -m venv $(VENV)
@@ -22,7 +22,16 @@ install: $(BIN)/maturin
 # so the `export` extra (torch, CPU use only; a large download the first time),
 # and catalogue builds on a local Ray instance, so the `dist` extra (ray).
 build: $(BIN)/maturin
-	$(BIN)/maturin develop --release --quiet --extras test,export,dist
+	$(BIN)/maturin develop --release --quiet --extras test,export,dist,lint
+
+# ruff (format and lint) over the Python trees, mypy on the package, rustfmt
+# and clippy with warnings as errors. CI runs it before the tests.
+lint: build
+	$(BIN)/ruff format --check python benches export tests
+	$(BIN)/ruff check python benches export tests
+	$(BIN)/mypy
+	cargo fmt --all --check
+	cargo clippy --workspace --all-targets --features python -- -D warnings
 
 demo: install
 	$(BIN)/edgepose demo

@@ -75,7 +75,9 @@ def main() -> None:
             started = time.perf_counter() - t0
             seconds, _ = timed_build(meshes, out, settings, RayExecutor(cpus_per_task=cpus))
             tasks = cores // cpus
-            rows.append((f"Ray, {tasks} task{'s' * (tasks > 1)} × {cpus} core{'s' * (cpus > 1)}", seconds + started, seconds))
+            rows.append(
+                (f"Ray, {tasks} task{'s' * (tasks > 1)} × {cpus} core{'s' * (cpus > 1)}", seconds + started, seconds)
+            )
             assert {p.name: p.read_bytes() for p in out.glob("*.codebook")} == local_bytes, "Ray bytes differ"
             seconds, results = timed_build(meshes, out, settings, RayExecutor(cpus_per_task=cpus))
             assert all(r.status == "skipped" for r in results)
@@ -86,9 +88,14 @@ def main() -> None:
     print("\n| run | wall s (with Ray start) | objects/min (with Ray start) | build s | objects/min | vs local |")
     print("| --- | ---: | ---: | ---: | ---: | ---: |")
     for name, with_start, build in rows:
-        print(f"| {name} | {with_start:.1f} | {60 * n / with_start:.1f} | {build:.1f} | {60 * n / build:.1f} | {local / build:.2f}× |")
-    print(f"\nrerun, all {n} up to date: local {resume_local:.2f} s, Ray {resume_ray:.2f} s "
-          f"({resume_local / n * 1000:.0f} ms per object checked locally)")
+        print(
+            f"| {name} | {with_start:.1f} | {60 * n / with_start:.1f} | {build:.1f} | {60 * n / build:.1f} "
+            f"| {local / build:.2f}× |"
+        )
+    print(
+        f"\nrerun, all {n} up to date: local {resume_local:.2f} s, Ray {resume_ray:.2f} s "
+        f"({resume_local / n * 1000:.0f} ms per object checked locally)"
+    )
     print("Ray codebooks byte-identical to the local ones: yes")
 
 

@@ -13,9 +13,8 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
-
 import edgepose
+import numpy as np
 from edgepose.model import read_mesh
 
 YCB = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycb"
@@ -54,17 +53,22 @@ def main() -> None:
 
     views = edgepose.fibonacci_viewpoints(args.views)
     print(f"{args.views} views, {args.map_points} points per map, 4096-point models, median of {args.repeats}")
-    print(f"{'object':<16} {'read mesh':>10} {'model':>8} {'maps':>8} {'per view':>9} {'numpy/view':>11} {'speed-up':>9}")
+    print(
+        f"{'object':<16} {'read mesh':>10} {'model':>8} {'maps':>8} {'per view':>9} {'numpy/view':>11} {'speed-up':>9}"
+    )
     map_times = []
     for path in sorted(YCB.glob("*.ply")):
-        read = median_seconds(lambda: read_mesh(path), args.repeats)
+        read = median_seconds(lambda path=path: read_mesh(path), args.repeats)
         mesh = read_mesh(path)
-        build = median_seconds(lambda: edgepose.load_model(mesh), args.repeats)
+        build = median_seconds(lambda mesh=mesh: edgepose.load_model(mesh), args.repeats)
         model = edgepose.load_model(mesh)
-        maps = median_seconds(lambda: edgepose.compute_maps(model, views, args.map_points), args.repeats)
+        maps = median_seconds(lambda model=model: edgepose.compute_maps(model, views, args.map_points), args.repeats)
         sample = range(0, args.views, max(1, args.views // 8))
         numpy_per_view = median_seconds(
-            lambda: [numpy_view_map(model, views.rotations[v], args.map_points) for v in sample], 1
+            lambda model=model, sample=sample: [
+                numpy_view_map(model, views.rotations[v], args.map_points) for v in sample
+            ],
+            1,
         ) / len(sample)
         per_view = maps / args.views
         map_times.append(maps)

@@ -44,13 +44,11 @@ import statistics
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
-
-import numpy as np
 
 import edgepose
-from edgepose.settings import DEFAULT_SETTINGS
+import numpy as np
 from edgepose.eval import BopRow, auc, write_bop_csv
 from edgepose.eval.baselines import (
     EdgePoseMethod,
@@ -63,6 +61,7 @@ from edgepose.eval.benchmark import BenchObject as ObjectData
 from edgepose.eval.benchmark import MethodRun, load_object, summarise
 from edgepose.eval.benchmark import run_method as run_views
 from edgepose.eval.scenes import STRESS_LEVELS
+from edgepose.settings import DEFAULT_SETTINGS
 
 REPO = Path(__file__).resolve().parents[1]
 YCB = REPO.parent / "shared" / "data" / "ycb"
@@ -104,7 +103,8 @@ YCBV_OBJ_ID = {
 METHODS: dict[str, tuple[Callable[[], PoseMethod], str]] = {
     "edgepose": (
         EdgePoseMethod,
-        "codebook of 2,100 views; segmentation of the cloud (outliers, spill), encoder + IRR, candidate translations aligned, "
+        "codebook of 2,100 views; segmentation of the cloud (outliers, spill), encoder + IRR, "
+        "candidate translations aligned, "
         "truncated-fit + free-space scoring, ICP of the best distinct candidates (settings below)",
     ),
     "edgepose-norefine": (
@@ -161,7 +161,9 @@ def load_sources(args: argparse.Namespace, parser: argparse.ArgumentParser) -> l
             paths = []
             for item in args.meshes.split(","):
                 path = Path(item.strip())
-                paths += sorted(p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES) if path.is_dir() else [path]
+                paths += (
+                    sorted(p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES) if path.is_dir() else [path]
+                )
         missing = [str(p) for p in paths if not p.is_file()]
         if missing:
             parser.error(f"no mesh file {missing}")
@@ -186,10 +188,14 @@ def load_sources(args: argparse.Namespace, parser: argparse.ArgumentParser) -> l
     if missing:
         parser.error(f"no mesh for {missing} in {YCB}")
     return [
-        Source(n, read_mesh(YCB / f"{n}.ply", scale=None), args.seed * 100_000 + every.index(n) * 1000,
-               YCBV_OBJ_ID.get(n, 100 + every.index(n)))
+        Source(
+            n,
+            read_mesh(YCB / f"{n}.ply", scale=None),
+            args.seed * 100_000 + every.index(n) * 1000,
+            YCBV_OBJ_ID.get(n, 100 + every.index(n)),
+        )
         for n in names
-    ]  # fmt: skip
+    ]
 
 
 class PrepareOnce:
@@ -236,17 +242,28 @@ def run_all(
         for level in levels:
             t0 = time.perf_counter()
             seeds = [src.seed_base + i for i in range(views)]
-            obj = load_object(src.mesh, seeds, name=src.name, occluders=occluders if level == "clean" else 0, stress=level)
-            print(f"{src.name} @ {level}: {views} views rendered in {time.perf_counter() - t0:.1f} s "
-                  f"(visible {np.mean(obj.visible):.2f}, spill {np.mean(obj.spill):.2f})", flush=True)  # fmt: skip
+            obj = load_object(
+                src.mesh, seeds, name=src.name, occluders=occluders if level == "clean" else 0, stress=level
+            )
+            print(
+                f"{src.name} @ {level}: {views} views rendered in {time.perf_counter() - t0:.1f} s "
+                f"(visible {np.mean(obj.visible):.2f}, spill {np.mean(obj.spill):.2f})",
+                flush=True,
+            )
             for name, method in instances.items():
                 if name in failed:
                     continue
                 subset = obj
                 if peer_views is not None and is_peer(name):
                     n = min(peer_views, views)
-                    subset = dataclasses.replace(obj, seeds=obj.seeds[:n], clouds=obj.clouds[:n], poses=obj.poses[:n],
-                                                 visible=obj.visible[:n], spill=obj.spill[:n])  # fmt: skip
+                    subset = dataclasses.replace(
+                        obj,
+                        seeds=obj.seeds[:n],
+                        clouds=obj.clouds[:n],
+                        poses=obj.poses[:n],
+                        visible=obj.visible[:n],
+                        spill=obj.spill[:n],
+                    )
                 try:
                     t0 = time.perf_counter()
                     method.prepare(src.mesh)  # timed here once per object; a no-op at later levels
@@ -258,8 +275,11 @@ def run_all(
                     failed.add(name)
                     continue
                 s = summarise(run.views)
-                print(f"  {name:<18} ADD(-S) {s.add_or_s_pass:5.1f}%  ADD-S {s.add_s_pass:5.1f}%  "
-                      f"median {s.median_ms:7.0f} ms  ({s.views} views)", flush=True)  # fmt: skip
+                print(
+                    f"  {name:<18} ADD(-S) {s.add_or_s_pass:5.1f}%  ADD-S {s.add_s_pass:5.1f}%  "
+                    f"median {s.median_ms:7.0f} ms  ({s.views} views)",
+                    flush=True,
+                )
                 runs[level][name].views += run.views
                 runs[level][name].prepare_s[src.name] = method.prepare_s[src.name]
             objects[level].append(dataclasses.replace(obj, clouds=[]))
@@ -292,7 +312,8 @@ def tables(runs: list[MethodRun], objects: list[ObjectData]) -> tuple[str, str, 
             f"| {statistics.median(r.prepare_s.values()):.2f} | {s.median_ms / ref_ms:.2f}× |"
         )
     per_object = [
-        "| object | sym. | method | ADD-S < 0.1d | ADD(-S) < 0.1d | AUC ADD-S | AUC ADD(-S) | median ms | p90 ms | prepare s |",
+        "| object | sym. | method | ADD-S < 0.1d | ADD(-S) < 0.1d | AUC ADD-S | AUC ADD(-S) "
+        "| median ms | p90 ms | prepare s |",
         "| --- | :---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for obj in objects:
@@ -317,7 +338,8 @@ def level_table(runs: list[MethodRun], peer_views: int | None) -> str:
         note = f" (first {peer_views} views per object)" if peer_views is not None and is_peer(r.name) else ""
         fails = f" ({s.failures} errors)" if s.failures else ""
         lines.append(
-            f"| {r.name}{fails}{note} | {s.views} | {s.add_or_s_pass:.1f} % | {s.add_s_pass:.1f} % | {s.auc_add_or_s:.1f} "
+            f"| {r.name}{fails}{note} | {s.views} | {s.add_or_s_pass:.1f} % | {s.add_s_pass:.1f} % "
+            f"| {s.auc_add_or_s:.1f} "
             f"| {s.median_ms:.0f} | {s.p90_ms:.0f} |"
         )
     return "\n".join(lines)
@@ -327,7 +349,9 @@ def stress_summary(runs: dict[str, list[MethodRun]], objects: dict[str, list[Obj
     """Rows: stress levels with their achieved mean visible and spill
     fractions (over every rendered view); columns: each method's ADD(-S)."""
     lines = [
-        "| stress level | mean visible fraction | mean spill fraction | " + " | ".join(f"{m} ADD(-S)" for m in methods) + " |",
+        "| stress level | mean visible fraction | mean spill fraction | "
+        + " | ".join(f"{m} ADD(-S)" for m in methods)
+        + " |",
         "| --- | ---: | ---: | " + " | ".join("---:" for _ in methods) + " |",
     ]
     for level, by_level in runs.items():
@@ -344,10 +368,26 @@ def stress_summary(runs: dict[str, list[MethodRun]], objects: dict[str, list[Obj
 
 def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[str, list[ObjectData]]) -> None:
     fields = [
-        "stress", "method", "object", "view", "seed", "visible_fraction", "spill_fraction", "points", "latency_ms",
-        "add_mm", "add_s_mm", "add_or_s_mm", "rotation_deg", "translation_mm", "diameter_mm", "correct_add_s",
-        "correct_add_or_s", "score", "error",
-    ]  # fmt: skip
+        "stress",
+        "method",
+        "object",
+        "view",
+        "seed",
+        "visible_fraction",
+        "spill_fraction",
+        "points",
+        "latency_ms",
+        "add_mm",
+        "add_s_mm",
+        "add_or_s_mm",
+        "rotation_deg",
+        "translation_mm",
+        "diameter_mm",
+        "correct_add_s",
+        "correct_add_or_s",
+        "score",
+        "error",
+    ]
     with path.open("w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(fields)
@@ -358,13 +398,27 @@ def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[
                     e, o = v.errors, scenes[v.object]
                     writer.writerow(
                         [
-                            level, v.method, v.object, v.view, v.seed, f"{o.visible[v.view]:.4f}", f"{o.spill[v.view]:.4f}",
-                            v.points, f"{v.latency_s * 1e3:.3f}", f"{e.add * 1e3:.3f}", f"{e.add_s * 1e3:.3f}",
-                            f"{e.add_or_s * 1e3:.3f}", f"{e.rotation_deg:.3f}", f"{e.translation_mm:.3f}",
-                            f"{e.diameter * 1e3:.3f}", int(e.correct_add_s), int(e.correct_add_or_s), f"{v.score:.6g}",
+                            level,
+                            v.method,
+                            v.object,
+                            v.view,
+                            v.seed,
+                            f"{o.visible[v.view]:.4f}",
+                            f"{o.spill[v.view]:.4f}",
+                            v.points,
+                            f"{v.latency_s * 1e3:.3f}",
+                            f"{e.add * 1e3:.3f}",
+                            f"{e.add_s * 1e3:.3f}",
+                            f"{e.add_or_s * 1e3:.3f}",
+                            f"{e.rotation_deg:.3f}",
+                            f"{e.translation_mm:.3f}",
+                            f"{e.diameter * 1e3:.3f}",
+                            int(e.correct_add_s),
+                            int(e.correct_add_or_s),
+                            f"{v.score:.6g}",
                             v.error,
                         ]
-                    )  # fmt: skip
+                    )
 
 
 def write_bop(path: Path, runs: dict[str, MethodRun], obj_ids: dict[str, int]) -> None:
@@ -428,12 +482,17 @@ def plot(runs: list[MethodRun], scatter_path: Path, cdf_path: Path) -> None:
             ax.scatter(o.median_ms, o.add_s_pass, color=c, alpha=0.35, s=18)
         ax.scatter(s.median_ms, s.add_s_pass, color=c, s=90, edgecolor="black", label=f"{r.name} ADD-S", zorder=3)
         ax.scatter(
-            s.median_ms, s.add_or_s_pass, facecolor="white", edgecolor=c, linewidth=2, s=90, marker="D",
-            label=f"{r.name} ADD(-S)", zorder=3,
-        )  # fmt: skip
-        ax.errorbar(
-            s.median_ms, s.add_s_pass, xerr=[[0], [s.p90_ms - s.median_ms]], color=c, capsize=3, zorder=2
+            s.median_ms,
+            s.add_or_s_pass,
+            facecolor="white",
+            edgecolor=c,
+            linewidth=2,
+            s=90,
+            marker="D",
+            label=f"{r.name} ADD(-S)",
+            zorder=3,
         )
+        ax.errorbar(s.median_ms, s.add_s_pass, xerr=[[0], [s.p90_ms - s.median_ms]], color=c, capsize=3, zorder=2)
     ax.set_xscale("log")
     ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
     ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
@@ -476,7 +535,8 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    return f"{os.cpu_count()} logical CPUs (nproc {len(os.sched_getaffinity(0))}), {model}, {platform.system()} {platform.machine()}"
+    cpus = f"{os.cpu_count()} logical CPUs (nproc {len(os.sched_getaffinity(0))})"
+    return f"{cpus}, {model}, {platform.system()} {platform.machine()}"
 
 
 def versions() -> str:
@@ -524,17 +584,26 @@ def write_markdown(
     levels = "\n".join(f"- `{lv}`: {STRESS_LEVELS[lv].description}" for lv in runs)
     per_level = "\n\n".join(f"### Stress level `{lv}`\n\n{level_table(rs, args.peer_views)}" for lv, rs in runs.items())
     if args.tune:
-        kind = (f"{len(objs)} tuning objects (CAD parts from `../shared/data/train_shapes/cad/`, disjoint from the "
-                f"reported YCB objects, each scaled to a diameter drawn in {TUNE_DIAMETER[0] * 100:.0f}–"
-                f"{TUNE_DIAMETER[1] * 100:.0f} cm: "
-                + ", ".join(f"{o.name} {o.diameter * 100:.1f} cm" for o in objs) + f"); seeds from {TUNE_SEED_BASE}")  # fmt: skip
+        kind = (
+            f"{len(objs)} tuning objects (CAD parts from `../shared/data/train_shapes/cad/`, disjoint from the "
+            f"reported YCB objects, each scaled to a diameter drawn in {TUNE_DIAMETER[0] * 100:.0f}–"
+            f"{TUNE_DIAMETER[1] * 100:.0f} cm: "
+            + ", ".join(f"{o.name} {o.diameter * 100:.1f} cm" for o in objs)
+            + f"); seeds from {TUNE_SEED_BASE}"
+        )
     elif args.meshes:
         kind = f"{len(objs)} objects from `--meshes` ({', '.join(o.name for o in objs)})"
     else:
         kind = f"{len(objs)} YCB objects ({', '.join(o.name for o in objs)})"
-    peers = (f" Peers (methods other than edgepose*) ran on the first {args.peer_views} views of each object only "
-             "(the `views` columns say how many)." if args.peer_views is not None else "")  # fmt: skip
+    peers = (
+        f" Peers (methods other than edgepose*) ran on the first {args.peer_views} views of each object only "
+        "(the `views` columns say how many)."
+        if args.peer_views is not None
+        else ""
+    )
     title = "Tuning benchmark (not the reported figures)" if args.tune else "Pose benchmark: edgepose and its peers"
+    load_before, load_after = (" / ".join(f"{x:.2f}" for x in averages) for averages in load)
+    scene_ids = ", ".join(f"{i} {n}" for i, n in enumerate(STRESS_LEVELS))
     text = f"""# {title}
 
 Generated by `benches/bench_pose.py`; do not edit by hand.
@@ -545,7 +614,7 @@ Generated by `benches/bench_pose.py`; do not edit by hand.
 
 - date: {datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")}
 - machine: {machine()}
-- load average (1/5/15 min) before: {" / ".join(f"{x:.2f}" for x in load[0])}, after: {" / ".join(f"{x:.2f}" for x in load[1])}
+- load average (1/5/15 min) before: {load_before}, after: {load_after}
 - software: {versions()}
 - wall time of the whole run: {wall_s / 60:.1f} min
 - edgepose settings (`edgepose.settings.EstimateSettings`; distances × diameter): {estimate_settings()}
@@ -604,7 +673,7 @@ Latency ratio: median latency of the method divided by that of **{reference}** (
 ## Files
 
 - per-view errors with their stress level: `{extra_files["views"].name}`
-- BOP results per method (scene_id = the stress level's index in `STRESS_LEVELS`: {", ".join(f"{i} {n}" for i, n in enumerate(STRESS_LEVELS))}):
+- BOP results per method (scene_id = the stress level's index in `STRESS_LEVELS`: {scene_ids}):
   {", ".join(f"`{p.name}`" for k, p in extra_files.items() if k.startswith("bop:"))}
 
 ## Notes
@@ -628,8 +697,12 @@ def main() -> None:
         help=f"comma-separated, from {', '.join(METHODS)} (default: edgepose when available, open3d, opencv-ppf)",
     )
     parser.add_argument("--objects", default=None, help="comma-separated YCB names (default: all five)")
-    parser.add_argument("--stress", default=",".join(STRESS_LEVELS), help="comma-separated stress levels (default: all)")
-    parser.add_argument("--peer-views", type=int, default=None, help="views per object for the peers (default: --views)")
+    parser.add_argument(
+        "--stress", default=",".join(STRESS_LEVELS), help="comma-separated stress levels (default: all)"
+    )
+    parser.add_argument(
+        "--peer-views", type=int, default=None, help="views per object for the peers (default: --views)"
+    )
     parser.add_argument("--tune", action="store_true", help="tuning objects (CAD parts, not YCB) -> benches/TUNING.md")
     parser.add_argument("--meshes", default=None, help="comma-separated mesh files or folders instead of YCB")
     parser.add_argument("--seed", type=int, default=0)
@@ -660,7 +733,9 @@ def main() -> None:
 
     load_before = os.getloadavg()
     started = time.perf_counter()
-    print(f"{args.views} views of {len(sources)} objects at {len(levels)} stress levels: {', '.join(levels)}", flush=True)
+    print(
+        f"{args.views} views of {len(sources)} objects at {len(levels)} stress levels: {', '.join(levels)}", flush=True
+    )
     runs, objects = run_all(sources, levels, methods, args.views, args.peer_views, args.occluders)
     ran = [m for m in methods if any(r.name == m for rs in runs.values() for r in rs)]
     if not ran:

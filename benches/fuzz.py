@@ -23,12 +23,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-import test_fuzz  # noqa: E402
-from hypothesis import given, settings  # noqa: E402
-
 import edgepose  # noqa: E402
+import test_fuzz  # noqa: E402
 from edgepose.eval import render_view  # noqa: E402
 from edgepose.model import read_mesh  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
 
 
 def rss_mb() -> float:
@@ -77,8 +76,10 @@ def main() -> None:
     for target, counts in tally.items():
         total = sum(counts.values())
         print(f"{target}: {total} inputs, " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
-    print(f"{elapsed:.0f} s, zero failures; RSS after warm-up {rss_start:.1f} MB, at end {rss_end:.1f} MB "
-          f"({100 * (rss_end - rss_start) / rss_start:+.1f} %)")
+    print(
+        f"{elapsed:.0f} s, zero failures; RSS after warm-up {rss_start:.1f} MB, at end {rss_end:.1f} MB "
+        f"({100 * (rss_end - rss_start) / rss_start:+.1f} %)"
+    )
 
 
 if __name__ == "__main__":

@@ -21,9 +21,8 @@ import hashlib
 import sys
 from pathlib import Path
 
-import numpy as np
-
 import edgepose
+import numpy as np
 from edgepose.eval.benchmark import load_object
 
 YCB = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycb"
@@ -48,7 +47,14 @@ def digest(views: int, stress: list[str]) -> dict[str, np.ndarray]:
                 key = f"{name}/{level}/{i}"
                 arrays[f"{key}/matrix"] = pose.matrix
                 arrays[f"{key}/numbers"] = np.array(
-                    [pose.fit, pose.score, pose.view, pose.inlier_fraction, pose.free_space_violation, pose.kept_points],
+                    [
+                        pose.fit,
+                        pose.score,
+                        pose.view,
+                        pose.inlier_fraction,
+                        pose.free_space_violation,
+                        pose.kept_points,
+                    ],
                     dtype=np.float64,
                 )
                 arrays[f"{key}/candidates"] = np.asarray(pose.candidates)

@@ -19,9 +19,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
 import edgepose
+import numpy as np
 from edgepose.eval import render_view
 from edgepose.model import read_mesh
 
@@ -64,8 +63,10 @@ def main() -> int:
     gc.collect()
     rss_end = rss_mb()
     growth = 100 * (rss_end - rss_warm) / rss_warm
-    print(f"{args.estimates} estimates: RSS {rss_warm:.1f} → {rss_end:.1f} MB ({growth:+.2f} %); "
-          f"latency median {1e3 * np.median(latencies):.2f} ms, p99 {1e3 * np.percentile(latencies, 99):.2f} ms")
+    print(
+        f"{args.estimates} estimates: RSS {rss_warm:.1f} → {rss_end:.1f} MB ({growth:+.2f} %); "
+        f"latency median {1e3 * np.median(latencies):.2f} ms, p99 {1e3 * np.percentile(latencies, 99):.2f} ms"
+    )
 
     ok = growth <= 5.0
     if args.threads:
@@ -75,8 +76,10 @@ def main() -> int:
             threaded = list(pool.map(lambda c: edgepose.estimate(c, codebook).matrix, clouds * 4))
         elapsed = time.perf_counter() - t
         same = all(np.array_equal(a, serial[i % len(clouds)]) for i, a in enumerate(threaded))
-        print(f"{args.threads} threads: {len(threaded)} estimates in {elapsed:.2f} s "
-              f"({1e3 * elapsed / len(threaded):.2f} ms each), poses identical to serial: {same}")
+        print(
+            f"{args.threads} threads: {len(threaded)} estimates in {elapsed:.2f} s "
+            f"({1e3 * elapsed / len(threaded):.2f} ms each), poses identical to serial: {same}"
+        )
         ok &= same
     return 0 if ok else 1
 

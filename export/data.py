@@ -6,9 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 import edgepose
+import numpy as np
 from edgepose.maps import DEFAULT_MAP_POINTS, visible_mask
 
 #: Observed views lie this close to their codebook view (2,100 views are ~4.4° apart).
@@ -51,7 +50,9 @@ def rot_z(theta: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def observe(model: edgepose.StandardModel, rotation: np.ndarray, rng: np.random.Generator, m: int = DEFAULT_MAP_POINTS) -> np.ndarray:
+def observe(
+    model: edgepose.StandardModel, rotation: np.ndarray, rng: np.random.Generator, m: int = DEFAULT_MAP_POINTS
+) -> np.ndarray:
     """A sensor-like map of ``model`` seen with ``rotation`` (object → view):
     uneven density, dropout, a cut-away occlusion, depth noise and
     quantisation, a small scale error. Falls back to the clean view when too

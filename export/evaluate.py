@@ -23,9 +23,8 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
-
 import edgepose
+import numpy as np
 from edgepose.encoder import MODELS_DIR, Encoder
 from edgepose.eval import YCB_SYMMETRIC, add_s, render_view
 from edgepose.model import read_mesh
@@ -58,7 +57,7 @@ def evaluate_object(encoder: Encoder, path: Path, queries: int, seed: int) -> di
     views = edgepose.fibonacci_viewpoints(2100)
     codes, spectra = encoder.encode(edgepose.compute_maps(model, views).points)
     symmetric = path.stem in YCB_SYMMETRIC
-    top1 = top_k = top_k_adds = 0
+    top1 = top_k = 0
     irr_errors = []
     for q in range(queries):
         view = render_view(mesh, seed=seed * 100_000 + q)
@@ -132,12 +131,16 @@ def main() -> None:
     rows = [evaluate_object(encoder, p, args.queries, args.seed) for p in sorted(YCB.glob("*.ply"))]
     print(f"{'object':<16} {'sym':>4} {'top-1 ≤15°':>11} {'top-16':>8} {'IRR median':>11} {'IRR p90':>8}")
     for r in rows:
-        print(f"{r['object']:<16} {'yes' if r['symmetric'] else 'no':>4} {r['top1_within_15deg']:>11.1%} "
-              f"{r[f'top{TOP_K}_success']:>8.1%} {r['irr_median_error_deg']:>10.2f}° {r['irr_p90_error_deg']:>7.1f}°")
+        print(
+            f"{r['object']:<16} {'yes' if r['symmetric'] else 'no':>4} {r['top1_within_15deg']:>11.1%} "
+            f"{r[f'top{TOP_K}_success']:>8.1%} {r['irr_median_error_deg']:>10.2f}° {r['irr_p90_error_deg']:>7.1f}°"
+        )
     overall = {
         "top1_within_15deg": float(np.mean([r["top1_within_15deg"] for r in rows])),
         f"top{TOP_K}_success": float(np.mean([r[f"top{TOP_K}_success"] for r in rows])),
-        f"top{TOP_K}_success_asymmetric": float(np.mean([r[f"top{TOP_K}_success"] for r in rows if not r["symmetric"]])),
+        f"top{TOP_K}_success_asymmetric": float(
+            np.mean([r[f"top{TOP_K}_success"] for r in rows if not r["symmetric"]])
+        ),
         "irr_median_error_deg": float(np.median([r["irr_median_error_deg"] for r in rows])),
     }
     print("all objects   " + "  ".join(f"{k} {v:.3f}" for k, v in overall.items()))

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import edgepose
 import numpy as np
 import trimesh
-
-import edgepose
 from edgepose.model import read_mesh
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -44,7 +43,9 @@ def procedural_mesh(rng: np.random.Generator) -> trimesh.Trimesh:
         elif kind == "sphere":
             part = trimesh.creation.icosphere(subdivisions=2, radius=size[0] / 2)
         else:
-            part = trimesh.creation.torus(major_radius=size[0] / 2, minor_radius=size[0] / 8, major_sections=24, minor_sections=8)
+            part = trimesh.creation.torus(
+                major_radius=size[0] / 2, minor_radius=size[0] / 8, major_sections=24, minor_sections=8
+            )
         transform = trimesh.transformations.random_rotation_matrix(rng.random(3))
         transform[:3, 3] = rng.uniform(-0.35, 0.35, size=3)
         part.apply_transform(transform)
@@ -52,7 +53,9 @@ def procedural_mesh(rng: np.random.Generator) -> trimesh.Trimesh:
     return trimesh.util.concatenate(parts)
 
 
-def build_models(count_procedural: int, seed: int, n_points: int = 4096, limit: int | None = None) -> list[edgepose.StandardModel]:
+def build_models(
+    count_procedural: int, seed: int, n_points: int = 4096, limit: int | None = None
+) -> list[edgepose.StandardModel]:
     """Standard models of all training shapes, each at a random diameter."""
     rng = np.random.default_rng(seed)
     meshes: list[trimesh.Trimesh] = []

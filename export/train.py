@@ -96,7 +96,6 @@ def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, 
     checks onnxruntime against torch on random inputs; the encoder's
     neighbour groups come from the Rust core, as at run time."""
     import onnxruntime as ort
-
     from edgepose import _core
 
     out.mkdir(parents=True, exist_ok=True)
@@ -104,16 +103,25 @@ def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, 
     maps = torch.randn(4, MAP_POINTS, 3) * 0.4
     groups = torch.from_numpy(_core.map_neighbours(maps.numpy(), CENTRES, NEIGHBOURS).astype(np.int64))
     torch.onnx.export(
-        encoder, (maps, groups), out / "encoder.onnx", input_names=["maps", "neighbours"],
+        encoder,
+        (maps, groups),
+        out / "encoder.onnx",
+        input_names=["maps", "neighbours"],
         output_names=["code", "spectrum"],
         dynamic_axes={"maps": {0: "batch"}, "neighbours": {0: "batch"}, "code": {0: "batch"}, "spectrum": {0: "batch"}},
-        opset_version=OPSET, dynamo=False,
+        opset_version=OPSET,
+        dynamo=False,
     )
     observed, candidates = torch.randn(1, SPECTRUM_SIZE), torch.randn(16, SPECTRUM_SIZE)
     torch.onnx.export(
-        irr, (observed, candidates), out / "irr.onnx", input_names=["observed", "candidates"],
-        output_names=["cos_sin"], dynamic_axes={"observed": {0: "one"}, "candidates": {0: "k"}, "cos_sin": {0: "k"}},
-        opset_version=OPSET, dynamo=False,
+        irr,
+        (observed, candidates),
+        out / "irr.onnx",
+        input_names=["observed", "candidates"],
+        output_names=["cos_sin"],
+        dynamic_axes={"observed": {0: "one"}, "candidates": {0: "k"}, "cos_sin": {0: "k"}},
+        opset_version=OPSET,
+        dynamo=False,
     )
     with torch.no_grad():
         code, spectrum = encoder(maps, groups)
@@ -123,7 +131,9 @@ def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, 
     rot = ort.InferenceSession(str(out / "irr.onnx"), providers=["CPUExecutionProvider"])
     (ort_angle,) = rot.run(None, {"observed": observed.numpy(), "candidates": candidates.numpy()})
     worst = max(
-        np.abs(ort_code - code.numpy()).max(), np.abs(ort_spec - spectrum.numpy()).max(), np.abs(ort_angle - angle.numpy()).max()
+        np.abs(ort_code - code.numpy()).max(),
+        np.abs(ort_spec - spectrum.numpy()).max(),
+        np.abs(ort_angle - angle.numpy()).max(),
     )
     if worst > 1e-4:
         raise RuntimeError(f"onnxruntime differs from torch by {worst:.2e}")
@@ -136,10 +146,17 @@ def write_manifest(out: Path, hashes: dict[str, str], encoder: Encoder, irr: InP
     manifest = {
         "format": 2,
         "files": hashes,
-        "parameters": {"encoder": parameter_count(encoder), "irr": parameter_count(irr), "total": parameter_count(encoder, irr)},
+        "parameters": {
+            "encoder": parameter_count(encoder),
+            "irr": parameter_count(irr),
+            "total": parameter_count(encoder, irr),
+        },
         "inputs": {
-            "map_points": MAP_POINTS, "centres": CENTRES, "neighbours": NEIGHBOURS,
-            "code_size": CODE_SIZE, "spectrum_size": SPECTRUM_SIZE,
+            "map_points": MAP_POINTS,
+            "centres": CENTRES,
+            "neighbours": NEIGHBOURS,
+            "code_size": CODE_SIZE,
+            "spectrum_size": SPECTRUM_SIZE,
         },
         "training": training,
     }
@@ -212,19 +229,34 @@ def main(argv: list[str] | None = None) -> int:
         if step % 25 == 0 or step == args.steps:
             n = 25 if step % 25 == 0 else step % 25
             rate = (time.perf_counter() - t0) / n
-            print(f"step {step:5d}  " + "  ".join(f"{k} {v / n:.3f}" for k, v in log.items()) + f"  {rate:.2f} s/step", flush=True)
+            print(
+                f"step {step:5d}  " + "  ".join(f"{k} {v / n:.3f}" for k, v in log.items()) + f"  {rate:.2f} s/step",
+                flush=True,
+            )
             log, t0 = {}, time.perf_counter()
         if step % 100 == 0 or step == args.steps:
             args.cache.mkdir(parents=True, exist_ok=True)
-            torch.save({"encoder": encoder.state_dict(), "irr": irr.state_dict(), "optimizer": optimizer.state_dict(),
-                        "schedule": schedule.state_dict(), "step": step}, checkpoint)
+            torch.save(
+                {
+                    "encoder": encoder.state_dict(),
+                    "irr": irr.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "schedule": schedule.state_dict(),
+                    "step": step,
+                },
+                checkpoint,
+            )
 
     hashes = export_onnx(encoder, irr, args.out)
     training = {
         "command": "python -m export.train " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "steps": args.steps, "shapes_per_batch": args.shapes_per_batch, "views_per_shape": args.views_per_shape,
-        "shapes": len(models), "data": "shared/data/train_shapes (1,000 blobs + 26 CAD parts) + procedural; never YCB",
-        "seed": args.seed, "seconds": round(time.perf_counter() - started),
+        "steps": args.steps,
+        "shapes_per_batch": args.shapes_per_batch,
+        "views_per_shape": args.views_per_shape,
+        "shapes": len(models),
+        "data": "shared/data/train_shapes (1,000 blobs + 26 CAD parts) + procedural; never YCB",
+        "seed": args.seed,
+        "seconds": round(time.perf_counter() - started),
         "initialised_from": None if args.init is None else "the previously shipped networks (fine-tune)",
     }
     manifest = write_manifest(args.out, hashes, encoder, irr, training)

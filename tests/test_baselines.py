@@ -35,7 +35,7 @@ def drill(ycb_dir: Path):
     mesh = read_mesh(ycb_dir / "power_drill.ply")
     mesh.apply_translation(ORIGIN_SHIFT)
     model = edgepose.load_model(mesh)
-    points = model.points.astype(np.float64) + model.centre
+    points = model.mesh_points
     views = [render_view(mesh, seed=s) for s in SEEDS]
     return mesh, points, model.diameter, views
 

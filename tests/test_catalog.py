@@ -10,10 +10,9 @@ import json
 import shutil
 from pathlib import Path
 
+import edgepose
 import numpy as np
 import pytest
-
-import edgepose
 from edgepose.catalog import (
     BuildSettings,
     CatalogError,
@@ -24,7 +23,6 @@ from edgepose.catalog import (
     find_meshes,
 )
 from edgepose.codebook import _canonical_header, _checksum
-
 from test_cli import run
 
 SETTINGS = BuildSettings(views=300)
@@ -170,11 +168,14 @@ def test_find_meshes_refuses_clashes_and_empty_folders(catalogue, tmp_path):
 
 def test_ray_build_is_byte_identical_to_the_local_build(ray_cluster, catalogue, local_books, tmp_path):
     seen = []
-    results = build_catalog(find_meshes([catalogue]), tmp_path, SETTINGS, executor=RayExecutor(),
-                            on_result=lambda r: seen.append(r.name))  # fmt: skip
+    results = build_catalog(
+        find_meshes([catalogue]), tmp_path, SETTINGS, executor=RayExecutor(), on_result=lambda r: seen.append(r.name)
+    )
     assert [(r.name, r.status, r.attempts) for r in results] == [
-        ("box", "built", 1), ("bracket", "built", 1), ("cylinder", "built", 1)
-    ]  # fmt: skip
+        ("box", "built", 1),
+        ("bracket", "built", 1),
+        ("cylinder", "built", 1),
+    ]
     assert sorted(seen) == ["box", "bracket", "cylinder"]  # streamed, in the order they finished
     assert books(tmp_path) == books(local_books) and len(books(tmp_path)) == 3
 
@@ -214,7 +215,9 @@ def test_ray_reports_a_task_whose_worker_died_and_finishes_the_others(ray_cluste
             os._exit(3)  # the worker process dies: a system failure, re-run by Ray, then reported
         return build_object(mesh, **options)
 
-    jobs = [(m.stem, {"mesh": str(m), "out_dir": str(tmp_path), "settings": SETTINGS}) for m in find_meshes([catalogue])]
+    jobs = [
+        (m.stem, {"mesh": str(m), "out_dir": str(tmp_path), "settings": SETTINGS}) for m in find_meshes([catalogue])
+    ]
     results = {r.name: r for r in RayExecutor(system_retries=1).map(build_or_die, jobs)}
     assert results["box"].status == "built" and results["bracket"].status == "built"
     assert results["cylinder"].failed and results["cylinder"].attempts == 2
@@ -236,7 +239,11 @@ def test_cli_build_through_ray_matches_local_and_resumes(ray_cluster, catalogue,
     out = run("build", str(catalogue), "-o", str(tmp_path), "--views", "300", "--ray-address", address)
     assert out.returncode == 0, out.stderr
     assert "1 built, 2 up to date (skipped), 0 failed" in out.stderr
-    rows = {line.split("│")[1].strip(): line.split("│")[2].strip() for line in out.stdout.splitlines() if line.count("│") > 3}
+    rows = {
+        line.split("│")[1].strip(): line.split("│")[2].strip()
+        for line in out.stdout.splitlines()
+        if line.count("│") > 3
+    }
     assert rows == {"box": "skipped", "bracket": "built", "cylinder": "skipped"}
     assert books(tmp_path) == books(local_books)
 
@@ -255,7 +262,9 @@ def test_cli_build_locally_reports_a_broken_mesh_and_exits_1(catalogue, local_bo
 def test_cli_eval_through_ray_gives_the_local_table(ray_cluster, catalogue):
     def accuracy_rows(out) -> list[list[str]]:
         assert out.returncode == 0, out.stderr
-        rows = [[c.strip() for c in line.strip("│ ").split("│")] for line in out.stdout.splitlines() if line.count("│") > 5]
+        rows = [
+            [c.strip() for c in line.strip("│ ").split("│")] for line in out.stdout.splitlines() if line.count("│") > 5
+        ]
         return [row[:7] for row in rows]  # object … AUC ADD(-S); not the latencies and build times
 
     args = ("eval", str(catalogue / "box.stl"), str(catalogue / "bracket.obj"), "--views", "3", "--seed", "2")
@@ -267,8 +276,10 @@ def test_cli_eval_through_ray_gives_the_local_table(ray_cluster, catalogue):
 
 
 def test_local_executor_runs_jobs_in_order(catalogue, tmp_path):
-    jobs = [(m.stem, {"mesh": str(m), "out_dir": str(tmp_path), "settings": BuildSettings(views=64)})
-            for m in find_meshes([catalogue])]  # fmt: skip
+    jobs = [
+        (m.stem, {"mesh": str(m), "out_dir": str(tmp_path), "settings": BuildSettings(views=64)})
+        for m in find_meshes([catalogue])
+    ]
     assert [r.name for r in LocalExecutor().map(build_object, jobs)] == ["box", "bracket", "cylinder"]
 
 

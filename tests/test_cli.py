@@ -9,10 +9,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import edgepose
 import numpy as np
 import pytest
-
-import edgepose
 from edgepose.encoder import MODELS_DIR
 from edgepose.eval import pose_errors, read_bop_csv, render_view
 
@@ -48,7 +47,7 @@ def drill():
 
 def assert_close_to_truth(result: dict, view, codebook) -> None:
     T = np.asarray(result["matrix"])
-    points = codebook.model.points.astype(np.float64) + codebook.model.centre
+    points = codebook.model.mesh_points
     e = pose_errors(points, T, view.T_cam_obj, codebook.model.diameter, symmetric=False)
     assert e.rotation_deg < 5.0 and e.translation_mm < 10.0, e
     assert e.correct_add_or_s
@@ -108,8 +107,17 @@ def test_demo_works_with_only_the_installed_package(tmp_path):
 
 
 def test_demo_builds_a_codebook_for_a_given_mesh(ycb_dir, tmp_path):
-    out = run("demo", "--mesh", str(ycb_dir / "banana.ply"), "--views", "500", "--seed", "1",
-              "--show", str(tmp_path / "banana.png"))  # fmt: skip
+    out = run(
+        "demo",
+        "--mesh",
+        str(ycb_dir / "banana.ply"),
+        "--views",
+        "500",
+        "--seed",
+        "1",
+        "--show",
+        str(tmp_path / "banana.png"),
+    )
     assert out.returncode == 0, out.stderr
     assert "codebook 500 views built in" in out.stdout
     assert "(correct at 0.1 × diameter" in out.stdout
@@ -183,9 +191,24 @@ def test_estimate_from_a_depth_png_with_k_and_mask(drill, tmp_path):
     (tmp_path / "truth.json").write_text(json.dumps({"matrix": view.T_cam_obj.tolist()}))
     K_numbers = " ".join(str(x) for x in view.camera.K.ravel())
 
-    first = run("estimate", "-c", str(DRILL_CODEBOOK), str(tmp_path / "depth.png"), "--K", str(tmp_path / "camera.json"),
-                "--mask", str(tmp_path / "mask.png"), "--truth", str(tmp_path / "truth.json"),
-                "--show", str(tmp_path / "shown.png"), "--bop-csv", str(tmp_path / "bop.csv"), "--obj-id", "15")  # fmt: skip
+    first = run(
+        "estimate",
+        "-c",
+        str(DRILL_CODEBOOK),
+        str(tmp_path / "depth.png"),
+        "--K",
+        str(tmp_path / "camera.json"),
+        "--mask",
+        str(tmp_path / "mask.png"),
+        "--truth",
+        str(tmp_path / "truth.json"),
+        "--show",
+        str(tmp_path / "shown.png"),
+        "--bop-csv",
+        str(tmp_path / "bop.csv"),
+        "--obj-id",
+        "15",
+    )
     assert first.returncode == 0, first.stderr
     result = json.loads(first.stdout)
     assert result["points"] == int(view.mask.sum())
@@ -193,8 +216,20 @@ def test_estimate_from_a_depth_png_with_k_and_mask(drill, tmp_path):
     assert result["errors"]["correct_add"] and result["errors"]["rotation_deg"] < 5
     assert (tmp_path / "shown.png").read_bytes()[:4] == b"\x89PNG"
 
-    second = run("estimate", "-c", str(DRILL_CODEBOOK), str(tmp_path / "depth.png"), "--K", K_numbers,
-                 "--mask", str(tmp_path / "mask.png"), "--bop-csv", str(tmp_path / "bop.csv"), "--im-id", "1")  # fmt: skip
+    second = run(
+        "estimate",
+        "-c",
+        str(DRILL_CODEBOOK),
+        str(tmp_path / "depth.png"),
+        "--K",
+        K_numbers,
+        "--mask",
+        str(tmp_path / "mask.png"),
+        "--bop-csv",
+        str(tmp_path / "bop.csv"),
+        "--im-id",
+        "1",
+    )
     assert second.returncode == 0, second.stderr
     assert json.loads(second.stdout)["matrix"] == result["matrix"]  # same input, same pose
     rows = read_bop_csv(tmp_path / "bop.csv")
@@ -214,7 +249,9 @@ def test_estimate_refuses_bad_inputs_with_one_line(drill, tmp_path):
     fails_cleanly(run("estimate", "-c", cb, str(tmp_path / "mm.npy")), "millimetres")
     fails_cleanly(run("estimate", "-c", cb, str(tmp_path / "flat.npy")), "expected (N, 3)")
     fails_cleanly(run("estimate", "-c", cb, str(tmp_path / "depth.png")), "needs --K")
-    fails_cleanly(run("estimate", "-c", cb, str(tmp_path / "depth.png"), "--K", "1 2 3", "--mask", "m.png"), "9 numbers")
+    fails_cleanly(
+        run("estimate", "-c", cb, str(tmp_path / "depth.png"), "--K", "1 2 3", "--mask", "m.png"), "9 numbers"
+    )
     fails_cleanly(run("estimate", "-c", str(tmp_path / "bad.codebook"), str(tmp_path / "mm.npy")), "codebook")
     write_pcd(tmp_path / "packed.pcd", view.cloud, binary=True, data="binary_compressed")
     fails_cleanly(run("estimate", "-c", cb, str(tmp_path / "packed.pcd")), "binary_compressed")

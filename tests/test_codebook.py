@@ -5,10 +5,9 @@ from __future__ import annotations
 import json
 import struct
 
+import edgepose
 import numpy as np
 import pytest
-
-import edgepose
 from edgepose.codebook import MAX_FILE_BYTES, VERSION, _checksum
 
 
@@ -100,11 +99,17 @@ def _resealed(blob: bytes, edit) -> bytes:
         (lambda b: _rewrite_header(b, lambda h: h["__metadata__"].pop("checksum")), "checksum mismatch"),
         (lambda b: _resealed(b, lambda m: m.pop("model")), "missing 'model'"),
         (lambda b: _resealed(b, lambda m: m.update(map_points="100000000")), "100000000' points per map"),
-        (lambda b: _resealed(b, lambda m: m.update(model=m["model"].replace('"diameter": ', '"diameter": -'))), "model metadata"),
+        (
+            lambda b: _resealed(b, lambda m: m.update(model=m["model"].replace('"diameter": ', '"diameter": -'))),
+            "model metadata",
+        ),
         (lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[2100, 32])), "not a valid codebook"),
         # Headers claiming huge arrays: checked against the bytes present, nothing allocated.
         (lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[1 << 40, 64])), "not a valid codebook"),
-        (lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[1 << 32, 1 << 32, 1 << 32])), "not a valid codebook"),
+        (
+            lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[1 << 32, 1 << 32, 1 << 32])),
+            "not a valid codebook",
+        ),
         (
             lambda b: _rewrite_header(b, lambda h: h["codes"].update(shape=[1 << 40, 64], data_offsets=[0, 1 << 47])),
             "not a valid codebook",

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from edgepose.eval import BopRow, read_bop_csv, write_bop_csv
+from scipy.spatial.transform import Rotation
 
 
 def rows(rng: np.random.Generator, n: int = 20) -> list[BopRow]:
@@ -61,7 +60,7 @@ def test_malformed_lines_are_named_by_number(tmp_path):
     path.write_text(f"scene_id,im_id,obj_id,score,R,t,time\n{good}\n1,x,5,0.5\n")
     with pytest.raises(ValueError, match=r"bad\.csv:3: .*7 comma-separated fields"):
         read_bop_csv(path)
-    path.write_text(f"scene_id,im_id,obj_id,score,R,t,time\n1,two,5,0.5,1 0 0 0 1 0 0 0 1,100 -25 750,0.02\n")
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n1,two,5,0.5,1 0 0 0 1 0 0 0 1,100 -25 750,0.02\n")
     with pytest.raises(ValueError, match=r"bad\.csv:2: "):
         read_bop_csv(path)
     path.write_text(f"scene_id,im_id,obj_id,score,R,t\n{good}\n")

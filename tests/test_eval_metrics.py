@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
-
 from edgepose.eval import (
     YCB_SYMMETRIC,
     PoseErrors,
@@ -18,6 +15,8 @@ from edgepose.eval import (
     rotation_error_deg,
     translation_error_mm,
 )
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 #: Three points 10 cm along each axis of the object frame.
 AXES = 0.1 * np.eye(3)

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import time
 
+import edgepose
 import numpy as np
 import pytest
 import trimesh
+from edgepose.eval import LINEMOD_CAMERA, Camera, RenderedView, depth_to_cloud, random_pose, render_view
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-
-import edgepose
-from edgepose.eval import LINEMOD_CAMERA, Camera, RenderedView, depth_to_cloud, random_pose, render_view
 
 CAM = LINEMOD_CAMERA
 NOISE_FREE = dict(depth_noise=0.0, quantization=0.0, dropout=0.0)

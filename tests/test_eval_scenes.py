@@ -6,16 +6,15 @@ from __future__ import annotations
 import dataclasses
 import time
 
+import edgepose
 import numpy as np
 import pytest
 import trimesh
-from scipy.ndimage import distance_transform_edt
-
-import edgepose
+from edgepose.cloud import dilate, erode
 from edgepose.eval import LINEMOD_CAMERA, STRESS_LEVELS, Camera, SceneView, Stress, render_scene, render_view
 from edgepose.eval.render import rasterize_depth
-from edgepose.cloud import dilate, erode
 from edgepose.eval.scenes import noise_sigma
+from scipy.ndimage import distance_transform_edt
 
 #: LINEMOD's camera at a quarter of its resolution: 160 × 120.
 SMALL = Camera(572.4 / 4, 573.6 / 4, 325.3 / 4, 242.0 / 4, 160, 120)
@@ -71,7 +70,8 @@ def test_same_pose_as_clean_at_the_same_distance(box):
     # Paired levels: only the stress differs between levels for one seed.
     for seed in SEEDS:
         np.testing.assert_array_equal(
-            render_scene(box, "spill5", seed, camera=SMALL).T_cam_obj, render_scene(box, "clean", seed, camera=SMALL).T_cam_obj
+            render_scene(box, "spill5", seed, camera=SMALL).T_cam_obj,
+            render_scene(box, "clean", seed, camera=SMALL).T_cam_obj,
         )
 
 
@@ -140,7 +140,10 @@ def test_depth_noise_grows_with_distance_on_a_plane():
 
 
 def test_same_seed_same_scene_other_seed_other_scene(box):
-    a, b = render_scene(box, "occluded30_spill5", 11, camera=SMALL), render_scene(box, "occluded30_spill5", 11, camera=SMALL)
+    a, b = (
+        render_scene(box, "occluded30_spill5", 11, camera=SMALL),
+        render_scene(box, "occluded30_spill5", 11, camera=SMALL),
+    )
     c = render_scene(box, "occluded30_spill5", 12, camera=SMALL)
     for field in ("cloud", "depth", "mask", "true_mask", "T_cam_obj", "flying_mask"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
@@ -162,7 +165,9 @@ def test_morphology_matches_a_disk():
 def test_cloud_is_the_masked_depth(box):
     view = render_scene(box, "spill5", 3, camera=SMALL)
     # Built from the uint16 millimetre image with the library's defaults; equal to the float metres one.
-    np.testing.assert_allclose(view.cloud, edgepose.cloud_from_depth(view.depth, view.K, view.mask, depth_scale=1.0), atol=1e-6)
+    np.testing.assert_allclose(
+        view.cloud, edgepose.cloud_from_depth(view.depth, view.K, view.mask, depth_scale=1.0), atol=1e-6
+    )
 
 
 def test_ycb_scene_renders_fast(ycb_dir):

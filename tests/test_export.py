@@ -11,8 +11,9 @@ import pytest
 torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
-from export import data, network, shapes, train  # noqa: E402
 from edgepose.encoder import Encoder  # noqa: E402
+
+from export import data, network, shapes, train  # noqa: E402
 
 
 def turn(maps: torch.Tensor, theta: float) -> torch.Tensor:
@@ -67,7 +68,9 @@ def test_reexport_keeps_the_shipped_networks_arithmetic(tmp_path):
     for a, b in zip(shipped.encode(maps), again.encode(maps)):
         np.testing.assert_allclose(a, b, atol=1e-5)
     spectra = shipped.encode(maps)[1]
-    np.testing.assert_allclose(shipped.in_plane_angles(spectra[0], spectra), again.in_plane_angles(spectra[0], spectra), atol=1e-5)
+    np.testing.assert_allclose(
+        shipped.in_plane_angles(spectra[0], spectra), again.in_plane_angles(spectra[0], spectra), atol=1e-5
+    )
 
 
 def test_training_pairs_carry_the_true_in_plane_angle(monkeypatch):

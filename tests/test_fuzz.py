@@ -19,15 +19,14 @@ import struct
 from contextlib import contextmanager
 from pathlib import Path
 
+import edgepose
 import numpy as np
 import pytest
+from edgepose.eval import render_view
+from edgepose.model import read_mesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-
-import edgepose
-from edgepose.eval import render_view
-from edgepose.model import read_mesh
 
 EXAMPLES = int(os.environ.get("EDGEPOSE_FUZZ_EXAMPLES", "60"))
 #: A single input taking longer than this is a hang, not slowness (an estimate takes milliseconds).
@@ -104,9 +103,7 @@ def check_load(damaged: bytes, path: Path, original: edgepose.Codebook) -> str:
 
 # --- estimate input ------------------------------------------------------------------
 
-_ANY_DTYPE = (
-    hnp.scalar_dtypes() | hnp.byte_string_dtypes() | hnp.unicode_string_dtypes() | st.just(np.dtype(object))
-)
+_ANY_DTYPE = hnp.scalar_dtypes() | hnp.byte_string_dtypes() | hnp.unicode_string_dtypes() | st.just(np.dtype(object))
 
 
 @st.composite

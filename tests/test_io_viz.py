@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-
 from edgepose import io
 from edgepose.viz import MODEL, OBSERVED, Frame, NullRecorder, draw_result, recorder, save_result_png
 from test_cli import write_pcd
@@ -23,8 +22,10 @@ def test_pcd_with_multi_count_fields_before_xyz(tmp_path, rng):
     points = rng.normal(size=(10, 3)).astype(np.float32)
     table = np.zeros(10, dtype=[("normal", "<f8", (3,)), ("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     table["normal"], table["x"], table["y"], table["z"] = 7.0, points[:, 0], points[:, 1], points[:, 2]
-    header = ("VERSION 0.7\nFIELDS normal x y z\nSIZE 8 4 4 4\nTYPE F F F F\nCOUNT 3 1 1 1\n"
-              "WIDTH 10\nHEIGHT 1\nPOINTS 10\nDATA binary\n")  # fmt: skip
+    header = (
+        "VERSION 0.7\nFIELDS normal x y z\nSIZE 8 4 4 4\nTYPE F F F F\nCOUNT 3 1 1 1\n"
+        "WIDTH 10\nHEIGHT 1\nPOINTS 10\nDATA binary\n"
+    )
     (tmp_path / "n.pcd").write_bytes(header.encode() + table.tobytes())
     np.testing.assert_array_equal(io.read_pcd(tmp_path / "n.pcd"), points)
     ascii_rows = "".join(f"7 7 7 {x!r} {y!r} {z!r}\n" for x, y, z in points.tolist())
@@ -90,7 +91,9 @@ def test_pose_from_json_bop_and_npy(tmp_path):
     T = np.eye(4)
     T[:3, 3] = (0.1, -0.2, 0.7)
     (tmp_path / "a.json").write_text(json.dumps(T.tolist()))
-    (tmp_path / "b.json").write_text(json.dumps({"cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [100, -200, 700]}))
+    (tmp_path / "b.json").write_text(
+        json.dumps({"cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [100, -200, 700]})
+    )
     np.save(tmp_path / "c.npy", T)
     for name in ("a.json", "b.json", "c.npy"):
         np.testing.assert_allclose(io.read_pose(tmp_path / name), T)

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
+import edgepose
 import numpy as np
 import pytest
 import trimesh
-
-import edgepose
 
 
 def fps_reference(points: np.ndarray, m: int) -> np.ndarray:

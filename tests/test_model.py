@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
+import edgepose
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import pdist
-
-import edgepose
 
 
 @pytest.mark.parametrize("name", ["banana", "mustard_bottle", "power_drill"])
@@ -33,7 +32,9 @@ def test_ycb_mesh_model_matches_reference_geometry(ycb_dir, name):
     triangles = tri.triangles
     for p in samples:
         closest = trimesh.triangles.closest_point(triangles, np.broadcast_to(p, (len(triangles), 3)))
-        assert np.linalg.norm(closest - p, axis=1).min() < 1e-4  # 0.1 mm; trimesh is loose on the scans' sliver triangles
+        assert (
+            np.linalg.norm(closest - p, axis=1).min() < 1e-4
+        )  # 0.1 mm; trimesh is loose on the scans' sliver triangles
     # Even coverage: no sample is far from its neighbours.
     assert nn[:, 1].max() < 4 * model.spacing
 

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import threading
 
+import edgepose
 import numpy as np
 import pytest
-
-import edgepose
 from edgepose.eval import pose_errors, render_view
 from edgepose.model import read_mesh
 
@@ -19,7 +18,7 @@ def drill(ycb_dir):
 
 
 def errors(pose, view, codebook):
-    model_points = codebook.model.points + codebook.model.centre
+    model_points = codebook.model.mesh_points
     return pose_errors(model_points, pose.matrix, view.T_cam_obj, codebook.model.diameter, symmetric=False)
 
 
@@ -58,10 +57,18 @@ def test_turned_over_poses_of_a_near_symmetric_object_are_told_apart(ycb_dir):
     mesh = read_mesh(ycb_dir / "mustard_bottle.ply")
     codebook = edgepose.build_codebook(mesh)
     seeds = range(500, 512)
-    refined = [errors(edgepose.estimate(render_view(mesh, seed=s).cloud, codebook), render_view(mesh, seed=s), codebook)
-               for s in seeds]
-    unrefined = [errors(edgepose.estimate(render_view(mesh, seed=s).cloud, codebook, refine=False),
-                        render_view(mesh, seed=s), codebook) for s in seeds]
+    refined = [
+        errors(edgepose.estimate(render_view(mesh, seed=s).cloud, codebook), render_view(mesh, seed=s), codebook)
+        for s in seeds
+    ]
+    unrefined = [
+        errors(
+            edgepose.estimate(render_view(mesh, seed=s).cloud, codebook, refine=False),
+            render_view(mesh, seed=s),
+            codebook,
+        )
+        for s in seeds
+    ]
     assert sum(e.correct_add_or_s for e in refined) >= 11, [round(e.rotation_deg) for e in refined]
     assert sum(e.rotation_deg > 150 for e in unrefined) >= 3, "these views should include turned-over candidates"
 
@@ -105,7 +112,9 @@ def test_accepts_open3d_like_clouds_and_depth_images(drill):
     depth_mm = np.round(view.depth * 1000).astype(np.uint16)
     cloud_mm = edgepose.cloud_from_depth(depth_mm, view.camera.K, view.mask)
     np.testing.assert_allclose(cloud_mm, view.cloud, atol=1e-3)
-    assert np.array_equal(edgepose.estimate(PointCloud(), codebook).matrix, edgepose.estimate(view.cloud, codebook).matrix)
+    assert np.array_equal(
+        edgepose.estimate(PointCloud(), codebook).matrix, edgepose.estimate(view.cloud, codebook).matrix
+    )
 
 
 def test_threads_give_the_serial_poses(drill):

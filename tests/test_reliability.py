@@ -16,17 +16,16 @@ import threading
 import tracemalloc
 from concurrent.futures import ThreadPoolExecutor
 
+import edgepose
 import numpy as np
 import pytest
 import trimesh
-from safetensors.numpy import load_file
-
-import edgepose
 from edgepose import _core
 from edgepose.cloud import MIN_POINTS, as_cloud
 from edgepose.errors import InternalError
 from edgepose.eval import pose_errors, render_view
 from edgepose.model import read_mesh
+from safetensors.numpy import load_file
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +112,7 @@ def test_too_few_points_coincident_points_and_wrong_units(drill, view):
     _, codebook = drill
     with pytest.raises(edgepose.InvalidCloudError, match=f"{MIN_POINTS - 1} valid points"):
         edgepose.estimate(view.cloud[: MIN_POINTS - 1], codebook)
-    assert edgepose.estimate(view.cloud[::len(view.cloud) // MIN_POINTS][:MIN_POINTS], codebook).matrix.shape == (4, 4)
+    assert edgepose.estimate(view.cloud[:: len(view.cloud) // MIN_POINTS][:MIN_POINTS], codebook).matrix.shape == (4, 4)
     with pytest.raises(edgepose.InvalidCloudError, match="coincide"):
         edgepose.estimate(np.tile(view.cloud[:1], (500, 1)), codebook)
     with pytest.raises(edgepose.InvalidCloudError, match="other units"):
@@ -158,7 +157,9 @@ def test_unusable_meshes_raise_model_errors(tmp_path):
     with pytest.raises(edgepose.InvalidModelError, match="outside 0..2"):
         edgepose.load_model(trimesh.Trimesh(np.eye(3) * 0.1, [[0, 1, 5]], process=False))
     # A few triangles are fine when they enclose a volume.
-    tetrahedron = trimesh.Trimesh(np.vstack([np.zeros(3), np.eye(3) * 0.1]), [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    tetrahedron = trimesh.Trimesh(
+        np.vstack([np.zeros(3), np.eye(3) * 0.1]), [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    )
     assert edgepose.load_model(tetrahedron).diameter == pytest.approx(0.1 * np.sqrt(2), rel=0.02)
 
 
@@ -235,9 +236,9 @@ def test_killing_a_save_midway_never_leaves_a_broken_codebook(drill, ycb_dir, tm
         assert saver.returncode == -signal.SIGKILL
         assert len(edgepose.Codebook.load(target)) in (2100, 200), f"trial {trial}"
         found = load_file(str(target))
-        assert any(
-            found.keys() == v.keys() and all(np.array_equal(found[k], v[k]) for k in v) for v in versions
-        ), f"trial {trial}: {target.name} is neither the old nor the new codebook"
+        assert any(found.keys() == v.keys() and all(np.array_equal(found[k], v[k]) for k in v) for v in versions), (
+            f"trial {trial}: {target.name} is neither the old nor the new codebook"
+        )
     leftovers = [p.name for p in work.iterdir() if p != target]
     assert all(name.startswith(".object.codebook.") and name.endswith(".tmp") for name in leftovers), leftovers
 
@@ -271,7 +272,10 @@ def test_same_input_gives_bit_identical_poses_in_other_processes(drill, tmp_path
         env = dict(os.environ, PYTHONHASHSEED=hash_seed, RAYON_NUM_THREADS=rayon_threads)
         run = subprocess.run(
             [sys.executable, "-c", _ESTIMATOR, str(path), *map(str, clouds)],
-            env=env, capture_output=True, text=True, check=True,
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
         )
         outputs.append(run.stdout.split())
     assert outputs[0] == outputs[1] == here

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 import edgepose
+import numpy as np
 
 
 def fibonacci_reference(n: int) -> np.ndarray:

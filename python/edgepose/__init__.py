@@ -12,9 +12,9 @@ from edgepose.codebook import Codebook, CodebookError, build_codebook
 from edgepose.encoder import Encoder, ModelFilesError
 from edgepose.errors import EdgePoseError, InvalidCloudError, InvalidModelError, MeshLoadError
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
+from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
 from edgepose.pose import Pose, estimate
 from edgepose.settings import EstimateSettings
-from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
 from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
 
 __all__ = [

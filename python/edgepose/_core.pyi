@@ -5,9 +5,7 @@ import numpy.typing as npt
 
 __version__: str
 
-_ModelTuple = tuple[
-    npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float64], float, float, float
-]
+_ModelTuple = tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float64], float, float, float]
 
 def standard_model_from_mesh(
     vertices: npt.NDArray[np.float64], faces: npt.NDArray[np.uint32], n_points: int, seed: int
@@ -36,7 +34,6 @@ def map_neighbours(maps: npt.NDArray[np.float32], centres: int, k: int) -> npt.N
 def top_k(
     codes: npt.NDArray[np.float32], query: npt.NDArray[np.float32], k: int
 ) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
-
 def segment_object(
     cloud: npt.NDArray[np.float32],
     diameter: float,

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 from edgepose.errors import EdgePoseError
 from edgepose.model import DEFAULT_MODEL_POINTS
@@ -156,7 +157,9 @@ def build_object(
         digest = file_sha256(mesh)
         if not force and is_up_to_date(target, digest, settings, encoder):
             return ObjectResult(mesh.stem, "skipped", 0.0, str(target), target.stat().st_size, settings.views)
-        book = build_codebook(mesh, views=settings.views, n_points=settings.n_points, scale=settings.scale, encoder=encoder)
+        book = build_codebook(
+            mesh, views=settings.views, n_points=settings.n_points, scale=settings.scale, encoder=encoder
+        )
         book.save(target)
         return ObjectResult(mesh.stem, "built", 0.0, str(target), target.stat().st_size, len(book))
 
@@ -289,8 +292,13 @@ class RayExecutor:
                     try:
                         yield ray.get(ref)
                     except ray.exceptions.RayError as e:  # the task's worker or node died, retries spent
-                        yield ObjectResult(name, "failed", 0.0, error=f"{name}: {type(e).__name__}: {e}",
-                                           attempts=1 + self.system_retries)  # fmt: skip
+                        yield ObjectResult(
+                            name,
+                            "failed",
+                            0.0,
+                            error=f"{name}: {type(e).__name__}: {e}",
+                            attempts=1 + self.system_retries,
+                        )
         finally:
             if started:
                 ray.shutdown()
@@ -330,10 +338,19 @@ def build_catalog(
     executor = executor or LocalExecutor()
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     jobs = [
-        (m.stem, {"mesh": str(m), "out_dir": str(out_dir), "settings": settings,
-                  "threads": executor.threads, "force": force, "retries": retries})
+        (
+            m.stem,
+            {
+                "mesh": str(m),
+                "out_dir": str(out_dir),
+                "settings": settings,
+                "threads": executor.threads,
+                "force": force,
+                "retries": retries,
+            },
+        )
         for m in meshes
-    ]  # fmt: skip
+    ]
     return _collect(executor.map(build_object, jobs), [m.stem for m in meshes], on_result)
 
 
@@ -352,10 +369,19 @@ def evaluate_catalog(
     ``meshes``' order."""
     executor = executor or LocalExecutor()
     jobs = [
-        (m.stem, {"mesh": str(m), "seeds": seeds(k), "methods": methods, "symmetric": symmetric(m.stem),
-                  "occluders": occluders, "retries": retries})
+        (
+            m.stem,
+            {
+                "mesh": str(m),
+                "seeds": seeds(k),
+                "methods": methods,
+                "symmetric": symmetric(m.stem),
+                "occluders": occluders,
+                "retries": retries,
+            },
+        )
         for k, m in enumerate(meshes)
-    ]  # fmt: skip
+    ]
     return _collect(executor.map(evaluate_object, jobs), [m.stem for m in meshes], on_result)
 
 

@@ -51,7 +51,9 @@ def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.
     ):
         raise InvalidCloudError(f"cloud must hold real numbers (float or integer), got dtype {array.dtype}")
     if array.ndim != 2 or array.shape[1] != 3:
-        hint = "; an organised (H, W, 3) cloud needs .reshape(-1, 3)" if array.ndim == 3 and array.shape[-1] == 3 else ""
+        hint = (
+            "; an organised (H, W, 3) cloud needs .reshape(-1, 3)" if array.ndim == 3 and array.shape[-1] == 3 else ""
+        )
         raise InvalidCloudError(f"cloud must have shape (N, 3), got {array.shape}{hint}")
 
     masks = [_valid_rows(array[s : s + _CHUNK_ROWS]) for s in range(0, len(array), _CHUNK_ROWS)]

@@ -123,7 +123,7 @@ class Codebook:
         return metadata
 
     @classmethod
-    def load(cls, path: str | os.PathLike, encoder: Encoder | None = None) -> "Codebook":
+    def load(cls, path: str | os.PathLike, encoder: Encoder | None = None) -> Codebook:
         """Read a codebook, checking its format, version, sizes and that it was
         made by ``encoder`` (the shipped one by default)."""
         from safetensors import SafetensorError
@@ -150,7 +150,9 @@ class Codebook:
         return cls._from_parts(tensors, metadata, encoder, str(path))
 
     @classmethod
-    def _from_parts(cls, tensors: dict[str, np.ndarray], metadata: dict[str, str], encoder: Encoder, name: str) -> "Codebook":
+    def _from_parts(
+        cls, tensors: dict[str, np.ndarray], metadata: dict[str, str], encoder: Encoder, name: str
+    ) -> Codebook:
         """A codebook from stored arrays and header, after checking both."""
         if metadata.get("format") != FORMAT:
             raise CodebookError(f"{name}: not an edgepose codebook (format {metadata.get('format')!r})")
@@ -186,7 +188,8 @@ class Codebook:
                     raise CodebookError(f"{name}: {key} has shape {tensors[key].shape}, expected {shape}")
             if metadata["map_points"] != str(encoder.map_points):
                 raise CodebookError(
-                    f"{name}: made with {metadata['map_points']!r} points per map, the encoder takes {encoder.map_points}"
+                    f"{name}: made with {metadata['map_points']!r} points per map, "
+                    f"the encoder takes {encoder.map_points}"
                 )
             points = tensors["model_points"].astype(np.float32)
             normals = tensors["model_normals"].astype(np.float32)
@@ -194,7 +197,8 @@ class Codebook:
                 raise CodebookError(f"{name}: model points/normals have shapes {points.shape}/{normals.shape}")
             numbers = [info["scale"], info["diameter"], info["spacing"], *info["centre"]]
             if (
-                not all(np.isfinite(numbers)) or len(info["centre"]) != 3
+                not all(np.isfinite(numbers))
+                or len(info["centre"]) != 3
                 or not (info["scale"] > 0 and info["diameter"] > 0 and info["spacing"] >= 0)
             ):
                 raise CodebookError(f"{name}: model metadata is not valid: {info}")
@@ -208,8 +212,12 @@ class Codebook:
             if not drift < 1e-5:
                 raise CodebookError(f"{name}: view rotations differ from the Fibonacci viewpoints by {drift:.2g}")
             model = StandardModel(
-                points, normals, np.asarray(info["centre"], dtype=np.float64), float(info["scale"]),
-                float(info["diameter"]), float(info["spacing"]),
+                points,
+                normals,
+                np.asarray(info["centre"], dtype=np.float64),
+                float(info["scale"]),
+                float(info["diameter"]),
+                float(info["spacing"]),
             )
             return cls(
                 model=model,
@@ -339,4 +347,3 @@ def _write_atomically(path: Path, data: bytes) -> None:
         os.fsync(dir_fd)
     finally:
         os.close(dir_fd)
-

@@ -14,6 +14,7 @@ import json
 import os
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -64,8 +65,18 @@ def _read_ply_points(path: Path) -> np.ndarray:
 
 
 #: PCD ``TYPE``/``SIZE`` → numpy dtype.
-_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
-              ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}  # fmt: skip
+_PCD_TYPES = {
+    ("F", 4): "f4",
+    ("F", 8): "f8",
+    ("I", 1): "i1",
+    ("I", 2): "i2",
+    ("I", 4): "i4",
+    ("I", 8): "i8",
+    ("U", 1): "u1",
+    ("U", 2): "u2",
+    ("U", 4): "u4",
+    ("U", 8): "u8",
+}
 
 
 def read_pcd(path: str | os.PathLike) -> np.ndarray:
@@ -105,15 +116,21 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
         return table[:points]
     if data == "binary":
         try:
-            dtype = np.dtype([(f"{name}_{i}" if count > 1 else name, _PCD_TYPES[(t, s)], (count,) if count > 1 else ())
-                              for i, (name, s, t, count) in enumerate(zip(fields, sizes, types, counts))])  # fmt: skip
+            dtype = np.dtype(
+                [
+                    (f"{name}_{i}" if count > 1 else name, _PCD_TYPES[(t, s)], (count,) if count > 1 else ())
+                    for i, (name, s, t, count) in enumerate(zip(fields, sizes, types, counts))
+                ]
+            )
         except KeyError as e:
             raise FileFormatError(f"{path}: unsupported PCD field type/size {e}") from None
         if len(blob) - offset < points * dtype.itemsize:
             raise FileFormatError(f"{path}: PCD data holds fewer than the {points} points its header declares")
-        table = np.frombuffer(blob, dtype=dtype, count=points, offset=offset)
-        return np.stack([table[axis].astype(np.float64) for axis in "xyz"], axis=1)
-    raise FileFormatError(f"{path}: PCD 'DATA {data}' is not supported (use ascii or binary, e.g. pcl_convert_pcd_ascii_binary)")
+        records: Any = np.frombuffer(blob, dtype=dtype, count=points, offset=offset)  # structured: fields by name
+        return np.stack([records[axis].astype(np.float64) for axis in "xyz"], axis=1)
+    raise FileFormatError(
+        f"{path}: PCD 'DATA {data}' is not supported (use ascii or binary, e.g. pcl_convert_pcd_ascii_binary)"
+    )
 
 
 def read_depth_png(path: str | os.PathLike) -> np.ndarray:
@@ -133,7 +150,7 @@ def read_mask_png(path: str | os.PathLike) -> np.ndarray:
     if image.ndim == 2:
         return image != 0
     colour = image[..., :-1] if image.shape[2] in (2, 4) else image  # LA, RGBA, PA: drop alpha
-    return colour.any(axis=2)
+    return np.asarray(colour.any(axis=2))
 
 
 def _read_png(path: str | os.PathLike, palette_indices: bool = False) -> np.ndarray:

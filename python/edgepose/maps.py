@@ -65,9 +65,7 @@ def farthest_point_sample(points: np.ndarray, m: int) -> np.ndarray:
     return _core.farthest_point_sample(points, m).astype(np.intp)
 
 
-def normalize_to_map(
-    points: np.ndarray, scale: float, m: int = DEFAULT_MAP_POINTS
-) -> tuple[np.ndarray, np.ndarray]:
+def normalize_to_map(points: np.ndarray, scale: float, m: int = DEFAULT_MAP_POINTS) -> tuple[np.ndarray, np.ndarray]:
     """Centre an (N, 3) cloud on its centroid, multiply by ``scale`` and
     resample to ``m`` points. Returns ``(map (m, 3), centroid (3,))``, the
     centroid in the input's frame and units."""

@@ -11,12 +11,15 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Union
+from typing import TYPE_CHECKING, Union
 
 import numpy as np
 
 from edgepose import _core
 from edgepose.errors import InvalidModelError, MeshLoadError
+
+if TYPE_CHECKING:
+    import trimesh
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +36,7 @@ MAX_DIAMETER = 10.0
 #: shape for a depth cloud to lock onto. A credit card is ~1 % thick.
 MIN_THICKNESS = 1e-3
 
-MeshSource = Union[str, os.PathLike, "trimesh.Trimesh"]  # noqa: F821
+MeshSource = Union[str, os.PathLike, "trimesh.Trimesh"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,12 @@ class StandardModel:
     """Largest distance between two model points, metres."""
     spacing: float
     """Mean nearest-neighbour distance between model points, metres."""
+
+    @property
+    def mesh_points(self) -> np.ndarray:
+        """(N, 3) float64 surface points in the original mesh frame (the frame
+        of ``T_cam_obj``), metres."""
+        return self.points.astype(np.float64) + self.centre
 
     @property
     def radius(self) -> float:
@@ -102,7 +111,9 @@ def load_model(
     _check_size(float(np.linalg.norm(np.ptp(vertices, axis=0))) * scale, scale, _name(source))
     vertices = vertices * scale
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise InvalidModelError(f"{_name(source)}: faces must be (F, 3) vertex indices, got {faces.dtype} {faces.shape}")
+        raise InvalidModelError(
+            f"{_name(source)}: faces must be (F, 3) vertex indices, got {faces.dtype} {faces.shape}"
+        )
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InvalidModelError(f"{_name(source)}: faces refer to vertices outside 0..{len(vertices) - 1}")
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
@@ -160,7 +171,7 @@ def _checked(model: StandardModel, name: str) -> StandardModel:
     return model
 
 
-def read_mesh(path: str | os.PathLike, scale: float | None = 1.0) -> "trimesh.Trimesh":  # noqa: F821
+def read_mesh(path: str | os.PathLike, scale: float | None = 1.0) -> trimesh.Trimesh:  # noqa: F821
     """A mesh file (obj, ply, stl, glb, off, …) as one ``trimesh.Trimesh``:
     the triangles of every geometry, in the file's frame, times ``scale``
     (1: the file's units; ``None``: metres, with millimetre files detected

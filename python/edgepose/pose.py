@@ -111,20 +111,28 @@ def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings 
     spacing = 0.0
     if settings.segment:
         keep, spacing = _core.segment_object(
-            points, model.diameter, settings.shadow_spacings, settings.max_shadowed_fraction,
-            settings.min_component_fraction, settings.max_component_offset,
-        )  # fmt: skip
+            points,
+            model.diameter,
+            settings.shadow_spacings,
+            settings.max_shadowed_fraction,
+            settings.min_component_fraction,
+            settings.max_component_offset,
+        )
         if keep.sum() >= MIN_POINTS:
             points = np.ascontiguousarray(points[keep])
     centroid = points.mean(axis=0, dtype=np.float64)
     r_corr = ray_alignment(centroid)
     corrected = ((points - centroid) @ r_corr.T).astype(np.float32)
     query_map, _ = normalize_to_map(corrected, model.scale, codebook.map_points)
-    keypoints = (query_map[: settings.keypoints] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(np.float32)
+    keypoints = (query_map[: settings.keypoints] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(
+        np.float32
+    )
     return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
 
 
-def retrieve(query: Query, codebook: Codebook, encoder: Encoder, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def retrieve(
+    query: Query, codebook: Codebook, encoder: Encoder, k: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Stage 2: ``(candidates (k,), similarities (k,), in-plane angles (k,) radians, timings)``."""
     t0 = time.perf_counter()
     code, spectrum = encoder.encode(query.map[None])
@@ -151,9 +159,12 @@ def candidate_poses(
     translations = query.centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
     if settings.align_iterations > 0:
         translations = codebook.index.align_translations(
-            query.keypoints, rotations, translations, settings.align_iterations,
+            query.keypoints,
+            rotations,
+            translations,
+            settings.align_iterations,
             settings.candidate_inlier_distance * codebook.model.diameter,
-        )  # fmt: skip
+        )
     return rotations, translations
 
 
@@ -171,9 +182,15 @@ def score_poses(
     frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
     d = codebook.model.diameter
     fit, inliers, violation = codebook.index.score(
-        observed, query.points, query.spacing, np.ascontiguousarray(rotations), np.ascontiguousarray(translations),
-        inlier_distance, settings.free_space_tolerance * d, settings.free_space_model_stride,
-    )  # fmt: skip
+        observed,
+        query.points,
+        query.spacing,
+        np.ascontiguousarray(rotations),
+        np.ascontiguousarray(translations),
+        inlier_distance,
+        settings.free_space_tolerance * d,
+        settings.free_space_model_stride,
+    )
     cost = fit / inlier_distance + free_space_weight * violation
     return PoseScores(fit, inliers, violation, cost)
 
@@ -181,7 +198,7 @@ def score_poses(
 class Refined(NamedTuple):
     """Stage 5's outcome: the chosen pose (model frame → camera) and its terms."""
 
-    index: int
+    candidate: int
     """Which candidate it started from."""
     R: np.ndarray
     t: np.ndarray
@@ -205,33 +222,48 @@ def refine_hypotheses(
     ICP. None when no ICP found enough points."""
     d = codebook.model.diameter
     coarse = _subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
-    starts = distinct_hypotheses(rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg)
+    starts = distinct_hypotheses(
+        rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
+    )
     max_distance = settings.icp_max_distance * d
     hyp_R, hyp_t, _, _, inliers, rmse = codebook.index.refine(
         coarse, rotations[starts], translations[starts], settings.hypothesis_iterations, max_distance
     )
-    usable = np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
+    usable = (
+        np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
+    )
     if not usable.any():
         return None
     inlier_distance = settings.hypothesis_inlier_distance * d
     scores = score_poses(query, codebook, coarse, hyp_R, hyp_t, inlier_distance, 0.0, settings)
     explains = scores.inlier_fraction >= settings.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
-    free = scores.free_space_violation <= scores.free_space_violation[usable].min() + settings.hypothesis_free_space_margin
+    free = (
+        scores.free_space_violation <= scores.free_space_violation[usable].min() + settings.hypothesis_free_space_margin
+    )
     competing = usable & explains & free
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
     best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
     if settings.icp_iterations > 0:
         fine_R, fine_t, _, _, fine_inliers, fine_rmse = codebook.index.refine(
             _subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
-            hyp_R[pick : pick + 1], hyp_t[pick : pick + 1], settings.icp_iterations, max_distance,
-        )  # fmt: skip
-        if fine_inliers[0] >= settings.min_icp_inliers and np.isfinite(fine_rmse[0]) and near_the_cloud(query, codebook, fine_t, settings)[0]:
+            hyp_R[pick : pick + 1],
+            hyp_t[pick : pick + 1],
+            settings.icp_iterations,
+            max_distance,
+        )
+        if (
+            fine_inliers[0] >= settings.min_icp_inliers
+            and np.isfinite(fine_rmse[0])
+            and near_the_cloud(query, codebook, fine_t, settings)[0]
+        ):
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
-            best = Refined(best.index, fine_R[0], fine_t[0], fine, True)
+            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True)
     return best
 
 
-def near_the_cloud(query: Query, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS) -> np.ndarray:
+def near_the_cloud(
+    query: Query, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
+) -> np.ndarray:
     """(H,) bool: whether each pose (model frame → camera, ``translations``
     (H, 3) metres: where the model's centre lands) keeps the model's centre
     within ``settings.max_centre_offset`` model radii of the observed centroid."""
@@ -279,12 +311,23 @@ def estimate(
     t2 = time.perf_counter()
     rotations, translations = candidate_poses(query, codebook, candidates, angles, settings)
     candidate_scores = score_poses(
-        query, codebook, query.keypoints, rotations, translations, settings.candidate_inlier_distance * model.diameter,
-        settings.candidate_free_space_weight, settings,
-    )  # fmt: skip
+        query,
+        codebook,
+        query.keypoints,
+        rotations,
+        translations,
+        settings.candidate_inlier_distance * model.diameter,
+        settings.candidate_free_space_weight,
+        settings,
+    )
     chosen = int(np.argmin(candidate_scores.cost))
-    result = Refined(chosen, rotations[chosen], translations[chosen],
-                     PoseScores(*(s[chosen : chosen + 1] for s in candidate_scores)), False)  # fmt: skip
+    result = Refined(
+        chosen,
+        rotations[chosen],
+        translations[chosen],
+        PoseScores(*(s[chosen : chosen + 1] for s in candidate_scores)),
+        False,
+    )
     t3 = time.perf_counter()
     if refine:
         result = refine_hypotheses(query, codebook, rotations, translations, candidate_scores.cost, settings) or result
@@ -295,9 +338,9 @@ def estimate(
     return Pose(
         R=result.R,
         t=t_obj,
-        score=float(similarity[result.index]),
+        score=float(similarity[result.candidate]),
         fit=float(result.scores.fit[0]),
-        view=int(candidates[result.index]),
+        view=int(candidates[result.candidate]),
         candidates=candidates,
         candidate_fit=candidate_scores.fit,
         timings={"prepare": t1 - t0, **retrieve_timings, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0},

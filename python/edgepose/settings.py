@@ -9,6 +9,7 @@ CLI, the catalogue, the benchmarks — sees it.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -92,7 +93,7 @@ class EstimateSettings:
     subsample_seed: int = 1
     """Seed of the (deterministic) subsampling of the cloud for ICP."""
 
-    def with_(self, **changes: object) -> "EstimateSettings":
+    def with_(self, **changes: Any) -> EstimateSettings:
         """A copy with some fields changed."""
         return replace(self, **changes)
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -49,7 +50,7 @@ class Frame:
     """(H, W) depth image (any units; only its shading is drawn)."""
 
 
-def draw_result(frame: Frame, lines: list[str] = ()) -> np.ndarray:
+def draw_result(frame: Frame, lines: Sequence[str] = ()) -> np.ndarray:
     """(H, W, 3) uint8 picture of ``frame``: a header with ``lines`` of text
     and a legend, then the camera, top and side panels."""
     cloud = np.asarray(frame.cloud, dtype=np.float64)
@@ -69,7 +70,7 @@ def draw_result(frame: Frame, lines: list[str] = ()) -> np.ndarray:
     return _annotate(image, list(lines), titles, len(cloud))
 
 
-def save_result_png(path: str | os.PathLike, frame: Frame, lines: list[str] = ()) -> Path:
+def save_result_png(path: str | os.PathLike, frame: Frame, lines: Sequence[str] = ()) -> Path:
     """Write :func:`draw_result` as a PNG; returns the path."""
     from edgepose.io import write_png
 
@@ -82,7 +83,7 @@ def _camera_panel(cloud: np.ndarray, model: np.ndarray, K: np.ndarray | None, de
     """Perspective view from the camera, cropped to the object: real pixels
     (and the depth image behind) when K is known, else a virtual camera."""
     virtual = K is None
-    if virtual:
+    if K is None:
         z = float(np.median(cloud[:, 2]))
         K = np.array([[PANEL * z, 0, 0], [0, PANEL * z, 0], [0, 0, 1.0]])  # 1 m at 1 m ≈ one panel
     both = np.concatenate([cloud, model])
@@ -163,8 +164,13 @@ def _ortho_panel(cloud, model, horizontal, vertical, toward_viewer) -> np.ndarra
     return _splat(panel, [to_panel(cloud), to_panel(model)], [OBSERVED, MODEL])
 
 
-def _splat(panel: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]], colours: list[tuple[int, int, int]],
-           radius: int = 1, shade: bool = True) -> np.ndarray:
+def _splat(
+    panel: np.ndarray,
+    layers: list[tuple[np.ndarray, np.ndarray]],
+    colours: list[tuple[int, int, int]],
+    radius: int = 1,
+    shade: bool = True,
+) -> np.ndarray:
     """Draw points as (2·radius+1)² squares with a z-buffer (smaller depth
     wins), shaded darker with distance so the shape reads."""
     pixels, depths, colour_index = [], [], []
@@ -188,7 +194,9 @@ def _splat(panel: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]], colou
     first[1:] = flat[order][1:] != flat[order][:-1]
     chosen = order[first]
     near, far = np.percentile(depth, 2), np.percentile(depth, 98)
-    factor = 1.0 - 0.55 * np.clip((depth[chosen] - near) / max(far - near, 1e-9), 0, 1) if shade else np.ones(len(chosen))
+    factor = (
+        1.0 - 0.55 * np.clip((depth[chosen] - near) / max(far - near, 1e-9), 0, 1) if shade else np.ones(len(chosen))
+    )
     rgb = np.asarray(colours, dtype=np.float64)[which[chosen]] * factor[:, None]
     panel.reshape(-1, 3)[flat[chosen]] = rgb.astype(np.uint8)
     return panel
@@ -292,6 +300,5 @@ def recorder(spawn: bool = False, save: str | os.PathLike | None = None) -> Reco
     try:
         return RerunRecorder(spawn=spawn, save=save)
     except ImportError:
-        print("warning: rerun logging needs the viz extra (pip install 'edgepose[viz]'); not logging",
-              file=sys.stderr)
+        print("warning: rerun logging needs the viz extra (pip install 'edgepose[viz]'); not logging", file=sys.stderr)
         return NullRecorder()

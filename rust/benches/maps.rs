@@ -5,7 +5,10 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use rayon::prelude::*;
 
-use edgepose_core::{compute_maps, farthest_point_sample, map_neighbours, neighbours_of_maps, view_map, viewpoints, visible_mask, StandardModel};
+use edgepose_core::{
+    compute_maps, farthest_point_sample, map_neighbours, neighbours_of_maps, view_map, viewpoints,
+    visible_mask, StandardModel,
+};
 
 /// A torus (radii 6 cm and 2 cm): non-convex, so it exercises the z-buffer.
 fn torus_model() -> StandardModel {
@@ -13,7 +16,10 @@ fn torus_model() -> StandardModel {
     let mut vertices = Vec::new();
     for i in 0..nu {
         for j in 0..nv {
-            let (u, v) = (i as f64 / nu as f64 * std::f64::consts::TAU, j as f64 / nv as f64 * std::f64::consts::TAU);
+            let (u, v) = (
+                i as f64 / nu as f64 * std::f64::consts::TAU,
+                j as f64 / nv as f64 * std::f64::consts::TAU,
+            );
             let r = major + minor * v.cos();
             vertices.push([r * u.cos(), r * u.sin(), minor * v.sin()]);
         }
@@ -37,7 +43,9 @@ fn bench_maps(c: &mut Criterion) {
     let (_, rotations) = viewpoints(2100);
     let mut group = c.benchmark_group("maps");
     group.sample_size(10);
-    group.bench_function("all_2100_views_4096_points_m512", |b| b.iter(|| compute_maps(&model, &rotations, 512)));
+    group.bench_function("all_2100_views_4096_points_m512", |b| {
+        b.iter(|| compute_maps(&model, &rotations, 512))
+    });
     group.bench_function("visibility_only_2100_views", |b| {
         b.iter(|| {
             rotations
@@ -50,7 +58,10 @@ fn bench_maps(c: &mut Criterion) {
                     };
                     let p: Vec<[f32; 3]> = model.points.iter().map(rot).collect();
                     let n: Vec<[f32; 3]> = model.normals.iter().map(rot).collect();
-                    visible_mask(&p, &n, model.spacing as f32).iter().filter(|v| **v).count()
+                    visible_mask(&p, &n, model.spacing as f32)
+                        .iter()
+                        .filter(|v| **v)
+                        .count()
                 })
                 .sum::<usize>()
         })
@@ -60,15 +71,21 @@ fn bench_maps(c: &mut Criterion) {
     let one_view = view_map(&model, &rotations[700], 2048);
     let visible: Vec<[f32; 3]> = one_view.points[..one_view.visible.min(2048)].to_vec();
     let mut fps = c.benchmark_group("fps");
-    fps.bench_function(format!("{}_to_512", visible.len()), |b| b.iter(|| farthest_point_sample(&visible, 512)));
+    fps.bench_function(format!("{}_to_512", visible.len()), |b| {
+        b.iter(|| farthest_point_sample(&visible, 512))
+    });
     fps.finish();
 
     // The encoder's neighbour groups (128 centres × 16 neighbours), per map and for a whole codebook.
     let maps = compute_maps(&model, &rotations, 512);
     let mut groups = c.benchmark_group("neighbour_groups");
-    groups.bench_function("one_map_512_points_128x16", |b| b.iter(|| map_neighbours(&maps.points[..512], 128, 16)));
+    groups.bench_function("one_map_512_points_128x16", |b| {
+        b.iter(|| map_neighbours(&maps.points[..512], 128, 16))
+    });
     groups.sample_size(10);
-    groups.bench_function("all_2100_maps_128x16", |b| b.iter(|| neighbours_of_maps(&maps.points, 512, 128, 16)));
+    groups.bench_function("all_2100_maps_128x16", |b| {
+        b.iter(|| neighbours_of_maps(&maps.points, 512, 128, 16))
+    });
     groups.finish();
 }
 

@@ -6,10 +6,15 @@ use nalgebra::{Rotation3, Unit, Vector3};
 
 use edgepose_core::rng::SplitMix64;
 use edgepose_core::scoring::align_translations;
-use edgepose_core::{score_poses, segment, top_k, verify, DepthGrid, ModelIndex, Point3, Pose, ScoreSettings, SegmentSettings};
+use edgepose_core::{
+    score_poses, segment, top_k, verify, DepthGrid, ModelIndex, Point3, Pose, ScoreSettings,
+    SegmentSettings,
+};
 
 fn unit_codes(views: usize, dim: usize, rng: &mut SplitMix64) -> Vec<f32> {
-    let mut codes: Vec<f32> = (0..views * dim).map(|_| rng.next_f64() as f32 - 0.5).collect();
+    let mut codes: Vec<f32> = (0..views * dim)
+        .map(|_| rng.next_f64() as f32 - 0.5)
+        .collect();
     for code in codes.chunks_exact_mut(dim) {
         let norm = code.iter().map(|v| v * v).sum::<f32>().sqrt();
         code.iter_mut().for_each(|v| *v /= norm);
@@ -45,7 +50,11 @@ fn bench_search(c: &mut Criterion) {
     let (points, normals) = box_model(&mut rng);
     let index = ModelIndex::new(points.clone(), normals);
     let truth = Pose {
-        rotation: *Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::new(1.0, 2.0, 0.5)), 0.8).matrix(),
+        rotation: *Rotation3::from_axis_angle(
+            &Unit::new_normalize(Vector3::new(1.0, 2.0, 0.5)),
+            0.8,
+        )
+        .matrix(),
         translation: Vector3::new(0.02, -0.01, 0.6),
     };
     let cloud: Vec<Point3> = points
@@ -58,20 +67,33 @@ fn bench_search(c: &mut Criterion) {
         .collect();
     let keypoints: Vec<Point3> = cloud.iter().step_by(32).take(32).cloned().collect();
     let candidates: Vec<Pose> = (0..16)
-        .map(|k| Pose { rotation: *Rotation3::from_euler_angles(0.0, 0.0, k as f64 * 0.3).matrix() * truth.rotation, ..truth })
+        .map(|k| Pose {
+            rotation: *Rotation3::from_euler_angles(0.0, 0.0, k as f64 * 0.3).matrix()
+                * truth.rotation,
+            ..truth
+        })
         .collect();
 
     let mut group = c.benchmark_group("query");
-    group.bench_function("top16_of_2100_codes", |b| b.iter(|| top_k(&codes, 64, &query, 16)));
-    group.bench_function("verify_16_candidates_32_keypoints", |b| b.iter(|| verify(&index, &keypoints, &candidates)));
+    group.bench_function("top16_of_2100_codes", |b| {
+        b.iter(|| top_k(&codes, 64, &query, 16))
+    });
+    group.bench_function("verify_16_candidates_32_keypoints", |b| {
+        b.iter(|| verify(&index, &keypoints, &candidates))
+    });
     group.bench_function("top16_plus_verify16", |b| {
         b.iter(|| {
             let best = top_k(&codes, 64, &query, 16);
             (best, verify(&index, &keypoints, &candidates))
         })
     });
-    let start = Pose { rotation: *Rotation3::from_euler_angles(0.05, -0.04, 0.03).matrix() * truth.rotation, translation: truth.translation + Vector3::new(0.004, -0.003, 0.002) };
-    group.bench_function("icp_1024_points_20_iterations", |b| b.iter(|| index.refine(&cloud, start, 20, 0.02)));
+    let start = Pose {
+        rotation: *Rotation3::from_euler_angles(0.05, -0.04, 0.03).matrix() * truth.rotation,
+        translation: truth.translation + Vector3::new(0.004, -0.003, 0.002),
+    };
+    group.bench_function("icp_1024_points_20_iterations", |b| {
+        b.iter(|| index.refine(&cloud, start, 20, 0.02))
+    });
 
     // Real-scene steps: the camera-facing half of the box seen from the
     // truth's camera (about 2,048 points with the spill ring below), and a
@@ -93,20 +115,32 @@ fn bench_search(c: &mut Criterion) {
     let ring: Vec<Point3> = (0..2048 - seen.len().min(2048))
         .map(|i| {
             let a = i as f32 * 0.0061;
-            [0.02 + 0.075 * a.cos(), -0.01 + 0.075 * a.sin(), 0.64 + 0.0001 * (i % 7) as f32]
+            [
+                0.02 + 0.075 * a.cos(),
+                -0.01 + 0.075 * a.sin(),
+                0.64 + 0.0001 * (i % 7) as f32,
+            ]
         })
         .collect();
     let scene: Vec<Point3> = seen.iter().chain(&ring).copied().collect();
-    group.bench_function(&format!("segment_{}_points", scene.len()), |b| b.iter(|| segment(&scene, 0.12, &SegmentSettings::default())));
+    group.bench_function(&format!("segment_{}_points", scene.len()), |b| {
+        b.iter(|| segment(&scene, 0.12, &SegmentSettings::default()))
+    });
     let spacing = segment(&scene, 0.12, &SegmentSettings::default()).spacing;
-    let settings = ScoreSettings { inlier_distance: 0.012, free_space_tolerance: 0.0036, model_stride: 4 };
+    let settings = ScoreSettings {
+        inlier_distance: 0.012,
+        free_space_tolerance: 0.0036,
+        model_stride: 4,
+    };
     group.bench_function("score_16_candidates_32_keypoints_free_space", |b| {
         b.iter(|| {
             let grid = DepthGrid::new(&seen, spacing, 2.0);
             score_poses(&index, &keypoints, &grid, &candidates, &settings)
         })
     });
-    group.bench_function("align_16_candidates_32_keypoints_3_iterations", |b| b.iter(|| align_translations(&index, &keypoints, &candidates, 3, 0.012)));
+    group.bench_function("align_16_candidates_32_keypoints_3_iterations", |b| {
+        b.iter(|| align_translations(&index, &keypoints, &candidates, 3, 0.012))
+    });
     group.finish();
 }
 

@@ -8,13 +8,21 @@ pub enum GeometryError {
     /// A mesh or cloud with nothing in it.
     Empty(&'static str),
     /// A face refers to a vertex that does not exist.
-    FaceIndexOutOfRange { face: usize, index: u32, vertices: usize },
+    FaceIndexOutOfRange {
+        face: usize,
+        index: u32,
+        vertices: usize,
+    },
     /// All faces have zero area: nothing to sample.
     DegenerateMesh,
     /// NaN or infinite coordinates where finite ones are required.
     NonFinite(&'static str),
     /// Two arrays that must pair up have different lengths.
-    LengthMismatch { what: &'static str, left: usize, right: usize },
+    LengthMismatch {
+        what: &'static str,
+        left: usize,
+        right: usize,
+    },
     /// A parameter outside its valid range.
     InvalidParameter(String),
 }
@@ -23,7 +31,11 @@ impl fmt::Display for GeometryError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::Empty(what) => write!(f, "{what} is empty"),
-            Self::FaceIndexOutOfRange { face, index, vertices } => write!(
+            Self::FaceIndexOutOfRange {
+                face,
+                index,
+                vertices,
+            } => write!(
                 f,
                 "face {face} refers to vertex {index}, but the mesh has only {vertices} vertices"
             ),

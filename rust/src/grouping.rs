@@ -12,7 +12,11 @@ use crate::Point3;
 /// each of its first `centres` points, nearest first; equal distances are
 /// ordered by index, so the result is deterministic.
 pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
-    assert!(centres <= map.len() && k <= map.len(), "a map of {} points has no {centres} centres with {k} neighbours", map.len());
+    assert!(
+        centres <= map.len() && k <= map.len(),
+        "a map of {} points has no {centres} centres with {k} neighbours",
+        map.len()
+    );
     let mut out = Vec::with_capacity(centres * k);
     if k == 0 {
         return out;
@@ -29,7 +33,12 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
     let block = map.len() / k;
     for c in &map[..centres] {
         let mut bound = f32::NEG_INFINITY;
-        for (((d, x), y), z) in distances.chunks_mut(block).zip(xs.chunks(block)).zip(ys.chunks(block)).zip(zs.chunks(block)) {
+        for (((d, x), y), z) in distances
+            .chunks_mut(block)
+            .zip(xs.chunks(block))
+            .zip(ys.chunks(block))
+            .zip(zs.chunks(block))
+        {
             let mut least = f32::INFINITY;
             for (((d, x), y), z) in d.iter_mut().zip(x).zip(y).zip(z) {
                 *d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
@@ -66,12 +75,18 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
 /// [`map_neighbours`] of every map in `points` (maps of `m` points each,
 /// flattened map-major), in parallel over maps: `maps × centres × k` indices.
 pub fn neighbours_of_maps(points: &[Point3], m: usize, centres: usize, k: usize) -> Vec<u32> {
-    assert!(m > 0 && points.len().is_multiple_of(m), "points must hold whole maps of {m} points");
+    assert!(
+        m > 0 && points.len().is_multiple_of(m),
+        "points must hold whole maps of {m} points"
+    );
     if points.len() == m {
         // One map (a query): waking the thread pool would cost more than the work.
         return map_neighbours(points, centres, k);
     }
-    let per_map: Vec<Vec<u32>> = points.par_chunks(m).map(|map| map_neighbours(map, centres, k)).collect();
+    let per_map: Vec<Vec<u32>> = points
+        .par_chunks(m)
+        .map(|map| map_neighbours(map, centres, k))
+        .collect();
     per_map.concat()
 }
 
@@ -81,7 +96,9 @@ mod tests {
     use crate::rng::SplitMix64;
 
     fn random_map(n: usize, rng: &mut SplitMix64) -> Vec<Point3> {
-        (0..n).map(|_| [0; 3].map(|_: i32| rng.next_f64() as f32 - 0.5)).collect()
+        (0..n)
+            .map(|_| [0; 3].map(|_: i32| rng.next_f64() as f32 - 0.5))
+            .collect()
     }
 
     #[test]
@@ -107,7 +124,13 @@ mod tests {
 
     #[test]
     fn duplicate_points_are_ordered_by_index() {
-        let map: Vec<Point3> = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 0.0, 0.0]];
+        let map: Vec<Point3> = vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.5, 0.0, 0.0],
+        ];
         assert_eq!(map_neighbours(&map, 2, 3), vec![0, 2, 4, 1, 3, 4]);
     }
 
@@ -125,7 +148,10 @@ mod tests {
         let mut rng = SplitMix64::new(5);
         let maps: Vec<Point3> = random_map(64 * 7, &mut rng);
         let all = neighbours_of_maps(&maps, 64, 16, 4);
-        let one_by_one: Vec<u32> = maps.chunks(64).flat_map(|m| map_neighbours(m, 16, 4)).collect();
+        let one_by_one: Vec<u32> = maps
+            .chunks(64)
+            .flat_map(|m| map_neighbours(m, 16, 4))
+            .collect();
         assert_eq!(all, one_by_one);
     }
 }

@@ -42,18 +42,39 @@ pub fn view_map(model: &StandardModel, rotation: &Rotation, m: usize) -> ViewMap
     let in_view: Vec<Point3> = model.points.iter().map(rotate).collect();
     let normals: Vec<Point3> = model.normals.iter().map(rotate).collect();
     let mask = visible_mask(&in_view, &normals, model.spacing as f32);
-    let seen: Vec<Point3> = in_view.iter().zip(&mask).filter(|(_, v)| **v).map(|(p, _)| *p).collect();
+    let seen: Vec<Point3> = in_view
+        .iter()
+        .zip(&mask)
+        .filter(|(_, v)| **v)
+        .map(|(p, _)| *p)
+        .collect();
     if seen.is_empty() {
-        return ViewMap { points: vec![[0.0; 3]; m], centroid: [0.0; 3], visible: 0 };
+        return ViewMap {
+            points: vec![[0.0; 3]; m],
+            centroid: [0.0; 3],
+            visible: 0,
+        };
     }
     let (points, centroid_view) = normalize_to_map(&seen, model.scale as f32, m);
-    let c = rotation.transpose() * nalgebra::Vector3::new(centroid_view[0] as f64, centroid_view[1] as f64, centroid_view[2] as f64);
-    ViewMap { points, centroid: [c.x, c.y, c.z], visible: seen.len() }
+    let c = rotation.transpose()
+        * nalgebra::Vector3::new(
+            centroid_view[0] as f64,
+            centroid_view[1] as f64,
+            centroid_view[2] as f64,
+        );
+    ViewMap {
+        points,
+        centroid: [c.x, c.y, c.z],
+        visible: seen.len(),
+    }
 }
 
 /// Maps of every viewpoint, computed in parallel.
 pub fn compute_maps(model: &StandardModel, rotations: &[Rotation], m: usize) -> Maps {
-    let per_view: Vec<ViewMap> = rotations.par_iter().map(|r| view_map(model, r, m)).collect();
+    let per_view: Vec<ViewMap> = rotations
+        .par_iter()
+        .map(|r| view_map(model, r, m))
+        .collect();
     let mut maps = Maps {
         points: Vec::with_capacity(rotations.len() * m),
         centroids: Vec::with_capacity(rotations.len()),
@@ -136,10 +157,15 @@ mod tests {
         for v in 0..64 {
             let map = &maps.points[v * 256..(v + 1) * 256];
             assert!(maps.visible[v] > 256);
-            let r = map.iter().map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt()).fold(0.0, f32::max);
+            let r = map
+                .iter()
+                .map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt())
+                .fold(0.0, f32::max);
             assert!(r <= 2.0 + 1e-4, "map must stay in the scaled frame: {r}");
             // Centred on all visible points, so the FPS subset's mean is near 0.
-            let mean: Vec<f32> = (0..3).map(|k| map.iter().map(|p| p[k]).sum::<f32>() / 256.0).collect();
+            let mean: Vec<f32> = (0..3)
+                .map(|k| map.iter().map(|p| p[k]).sum::<f32>() / 256.0)
+                .collect();
             assert!(mean.iter().all(|m| m.abs() < 0.1), "{mean:?}");
         }
     }

@@ -47,7 +47,11 @@ impl StandardModel {
 
     /// Builds a model from surface points with normals (metres), thinned to
     /// `n` points by farthest-point sampling when there are more.
-    pub fn from_points(points: &[Point3], normals: &[Point3], n: usize) -> Result<Self, GeometryError> {
+    pub fn from_points(
+        points: &[Point3],
+        normals: &[Point3],
+        n: usize,
+    ) -> Result<Self, GeometryError> {
         if points.is_empty() {
             return Err(GeometryError::Empty("model point cloud"));
         }
@@ -63,11 +67,19 @@ impl StandardModel {
                 "a model needs at least 16 points, asked for {n}"
             )));
         }
-        if points.iter().chain(normals).flatten().any(|v| !v.is_finite()) {
+        if points
+            .iter()
+            .chain(normals)
+            .flatten()
+            .any(|v| !v.is_finite())
+        {
             return Err(GeometryError::NonFinite("model points or normals"));
         }
         let keep: Vec<usize> = if points.len() > n {
-            farthest_point_sample(points, n).into_iter().map(|i| i as usize).collect()
+            farthest_point_sample(points, n)
+                .into_iter()
+                .map(|i| i as usize)
+                .collect()
         } else {
             (0..points.len()).collect()
         };
@@ -80,7 +92,11 @@ impl StandardModel {
                 hi[k] = hi[k].max(points[i][k] as f64);
             }
         }
-        let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])];
+        let centre = [
+            0.5 * (lo[0] + hi[0]),
+            0.5 * (lo[1] + hi[1]),
+            0.5 * (lo[2] + hi[2]),
+        ];
         let centred: Vec<Point3> = keep
             .iter()
             .map(|&i| {
@@ -103,7 +119,14 @@ impl StandardModel {
         }
         let diameter = diameter(&centred);
         let spacing = mean_nearest_neighbour_distance(&centred);
-        Ok(Self { points: centred, normals: unit_normals, centre, scale: 1.0 / radius, diameter, spacing })
+        Ok(Self {
+            points: centred,
+            normals: unit_normals,
+            centre,
+            scale: 1.0 / radius,
+            diameter,
+            spacing,
+        })
     }
 }
 
@@ -127,7 +150,11 @@ pub fn sample_surface(
     for (f, face) in faces.iter().enumerate() {
         for &index in face {
             if index as usize >= vertices.len() {
-                return Err(GeometryError::FaceIndexOutOfRange { face: f, index, vertices: vertices.len() });
+                return Err(GeometryError::FaceIndexOutOfRange {
+                    face: f,
+                    index,
+                    vertices: vertices.len(),
+                });
             }
         }
         let [a, b, c] = face.map(|i| vertices[i as usize]);
@@ -136,7 +163,11 @@ pub fn sample_surface(
         total += 0.5 * twice_area;
         cumulative.push(total);
         face_normals.push(if twice_area > 0.0 {
-            [(cross[0] / twice_area) as f32, (cross[1] / twice_area) as f32, (cross[2] / twice_area) as f32]
+            [
+                (cross[0] / twice_area) as f32,
+                (cross[1] / twice_area) as f32,
+                (cross[2] / twice_area) as f32,
+            ]
         } else {
             [0.0; 3]
         });
@@ -152,7 +183,9 @@ pub fn sample_surface(
         let target = rng.next_f64() * total;
         // First face whose cumulative area exceeds the target; zero-area faces
         // share their predecessor's cumulative value and are skipped.
-        let f = cumulative.partition_point(|&c| c <= target).min(faces.len() - 1);
+        let f = cumulative
+            .partition_point(|&c| c <= target)
+            .min(faces.len() - 1);
         let [a, b, c] = faces[f].map(|i| vertices[i as usize]);
         let (mut u, mut v) = (rng.next_f64(), rng.next_f64());
         if u + v > 1.0 {
@@ -169,7 +202,11 @@ pub fn sample_surface(
 /// Flips every normal when most of them point towards the centre: some
 /// meshes are wound inside-out, and visibility relies on outward normals.
 fn orient_outward(points: &[Point3], normals: &mut [Point3]) {
-    let inward = points.iter().zip(normals.iter()).filter(|(p, n)| dot(**p, **n) < 0.0).count();
+    let inward = points
+        .iter()
+        .zip(normals.iter())
+        .filter(|(p, n)| dot(**p, **n) < 0.0)
+        .count();
     if 2 * inward > points.len() {
         for n in normals.iter_mut() {
             *n = [-n[0], -n[1], -n[2]];
@@ -241,7 +278,11 @@ fn sub3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 }
 
 fn cross3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 
 #[cfg(test)]
@@ -252,16 +293,28 @@ pub(crate) mod tests {
     pub(crate) fn cube_mesh(half: f64) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
         let h = half;
         let vertices = vec![
-            [-h, -h, -h], [h, -h, -h], [h, h, -h], [-h, h, -h],
-            [-h, -h, h], [h, -h, h], [h, h, h], [-h, h, h],
+            [-h, -h, -h],
+            [h, -h, -h],
+            [h, h, -h],
+            [-h, h, -h],
+            [-h, -h, h],
+            [h, -h, h],
+            [h, h, h],
+            [-h, h, h],
         ];
         let faces = vec![
-            [0, 2, 1], [0, 3, 2], // -z
-            [4, 5, 6], [4, 6, 7], // +z
-            [0, 1, 5], [0, 5, 4], // -y
-            [3, 7, 6], [3, 6, 2], // +y
-            [0, 4, 7], [0, 7, 3], // -x
-            [1, 2, 6], [1, 6, 5], // +x
+            [0, 2, 1],
+            [0, 3, 2], // -z
+            [4, 5, 6],
+            [4, 6, 7], // +z
+            [0, 1, 5],
+            [0, 5, 4], // -y
+            [3, 7, 6],
+            [3, 6, 2], // +y
+            [0, 4, 7],
+            [0, 7, 3], // -x
+            [1, 2, 6],
+            [1, 6, 5], // +x
         ];
         (vertices, faces)
     }
@@ -277,15 +330,26 @@ pub(crate) mod tests {
         assert!((model.centre[0] - 1.0).abs() < 2e-3 && model.centre[1].abs() < 2e-3);
         // Corners are at √3·0.05 from the centre; FPS keeps points near them.
         let radius = 1.0 / model.scale;
-        assert!((radius - 0.05 * 3f64.sqrt()).abs() < 3e-3, "radius {radius}");
-        assert!((model.diameter - 0.1 * 3f64.sqrt()).abs() < 6e-3, "diameter {}", model.diameter);
+        assert!(
+            (radius - 0.05 * 3f64.sqrt()).abs() < 3e-3,
+            "radius {radius}"
+        );
+        assert!(
+            (model.diameter - 0.1 * 3f64.sqrt()).abs() < 6e-3,
+            "diameter {}",
+            model.diameter
+        );
         for (p, n) in model.points.iter().zip(&model.normals) {
             assert!(dot(*p, *n) > 0.0, "normal {n:?} at {p:?} points inward");
             assert!((norm(*n) - 1.0).abs() < 1e-5);
         }
         // Six faces of area 0.01 m² and 1024 points: spacing ≈ sqrt(0.06/1024).
         let expected = (0.06f64 / 1024.0).sqrt();
-        assert!(model.spacing > 0.6 * expected && model.spacing < 1.4 * expected, "{}", model.spacing);
+        assert!(
+            model.spacing > 0.6 * expected && model.spacing < 1.4 * expected,
+            "{}",
+            model.spacing
+        );
     }
 
     #[test]
@@ -293,7 +357,10 @@ pub(crate) mod tests {
         let (v, f) = cube_mesh(0.05);
         let points = StandardModel::from_mesh(&v, &f, 4096, 5).unwrap().points;
         let with = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
             pool.install(|| mean_nearest_neighbour_distance(&points))
         };
         let one = with(1);
@@ -309,13 +376,24 @@ pub(crate) mod tests {
             face.swap(1, 2);
         }
         let model = StandardModel::from_mesh(&v, &f, 512, 3).unwrap();
-        assert!(model.points.iter().zip(&model.normals).all(|(p, n)| dot(*p, *n) > 0.0));
+        assert!(model
+            .points
+            .iter()
+            .zip(&model.normals)
+            .all(|(p, n)| dot(*p, *n) > 0.0));
     }
 
     #[test]
     fn sampling_is_area_weighted_and_seeded() {
         // Two triangles: one of area 0.5, one of area 0.05 (ten times smaller).
-        let v = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [5.0, 0.0, 0.0], [5.1, 0.0, 0.0], [5.0, 1.0, 0.0]];
+        let v = vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [5.0, 0.0, 0.0],
+            [5.1, 0.0, 0.0],
+            [5.0, 1.0, 0.0],
+        ];
         let f = vec![[0, 1, 2], [3, 4, 5]];
         let (p, _) = sample_surface(&v, &f, 11_000, 9).unwrap();
         let big = p.iter().filter(|q| q[0] < 2.0).count() as f64;
@@ -327,14 +405,27 @@ pub(crate) mod tests {
     #[test]
     fn bad_meshes_give_named_errors() {
         let (v, _) = cube_mesh(0.05);
-        assert_eq!(sample_surface(&v, &[], 10, 0), Err(GeometryError::Empty("mesh")));
+        assert_eq!(
+            sample_surface(&v, &[], 10, 0),
+            Err(GeometryError::Empty("mesh"))
+        );
         assert_eq!(
             sample_surface(&v, &[[0, 1, 99]], 10, 0),
-            Err(GeometryError::FaceIndexOutOfRange { face: 0, index: 99, vertices: 8 })
+            Err(GeometryError::FaceIndexOutOfRange {
+                face: 0,
+                index: 99,
+                vertices: 8
+            })
         );
-        assert_eq!(sample_surface(&v, &[[0, 0, 1]], 10, 0), Err(GeometryError::DegenerateMesh));
+        assert_eq!(
+            sample_surface(&v, &[[0, 0, 1]], 10, 0),
+            Err(GeometryError::DegenerateMesh)
+        );
         let mut nan = v.clone();
         nan[0][0] = f64::NAN;
-        assert_eq!(sample_surface(&nan, &[[0, 1, 2]], 10, 0), Err(GeometryError::NonFinite("mesh vertices")));
+        assert_eq!(
+            sample_surface(&nan, &[[0, 1, 2]], 10, 0),
+            Err(GeometryError::NonFinite("mesh vertices"))
+        );
     }
 }

@@ -12,16 +12,19 @@
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use numpy::ndarray::Array;
-use numpy::{IntoPyArray, PyUntypedArrayMethods, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3, PyUntypedArrayMethods,
+};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use rayon::prelude::*;
 
 use crate::error::GeometryError;
-use crate::views::Rotation;
 use crate::refine::{ModelIndex, Pose};
 use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
 use crate::segment::{segment, SegmentSettings};
+use crate::views::Rotation;
 use crate::{grouping, maps, model, sampling, search, views, visibility, Point3};
 
 pyo3::import_exception!(edgepose.errors, InternalError);
@@ -40,7 +43,9 @@ fn guarded<T>(body: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
             .map(|s| s.to_string())
             .or_else(|| payload.downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "unknown panic payload".into());
-        Err(InternalError::new_err(format!("edgepose core bug (Rust panic): {message}")))
+        Err(InternalError::new_err(format!(
+            "edgepose core bug (Rust panic): {message}"
+        )))
     })
 }
 
@@ -53,7 +58,11 @@ fn _panic_for_tests(py: Python<'_>, message: String, where_: &str) -> PyResult<(
         "attached" => panic!("{message}"),
         "detached" => py.detach(|| -> PyResult<()> { panic!("{message}") }),
         "rayon" => {
-            py.detach(|| (0..64).into_par_iter().for_each(|i| assert!(i < 63, "{message}")));
+            py.detach(|| {
+                (0..64)
+                    .into_par_iter()
+                    .for_each(|i| assert!(i < 63, "{message}"))
+            });
             Ok(())
         }
         _ => Err(PyValueError::new_err(format!("unknown place {where_:?}"))),
@@ -61,10 +70,15 @@ fn _panic_for_tests(py: Python<'_>, message: String, where_: &str) -> PyResult<(
 }
 
 /// Borrows an (N, 3) C-contiguous array as N triples, without copying.
-fn triples<'a, T: numpy::Element>(array: &'a PyReadonlyArray2<'_, T>, name: &str) -> PyResult<&'a [[T; 3]]> {
+fn triples<'a, T: numpy::Element>(
+    array: &'a PyReadonlyArray2<'_, T>,
+    name: &str,
+) -> PyResult<&'a [[T; 3]]> {
     let shape = array.shape();
     if shape[1] != 3 {
-        return Err(PyValueError::new_err(format!("{name} must have shape (N, 3), got {shape:?}")));
+        return Err(PyValueError::new_err(format!(
+            "{name} must have shape (N, 3), got {shape:?}"
+        )));
     }
     let flat = array
         .as_slice()
@@ -75,32 +89,52 @@ fn triples<'a, T: numpy::Element>(array: &'a PyReadonlyArray2<'_, T>, name: &str
 fn rotations_from(array: &PyReadonlyArray3<'_, f64>) -> PyResult<Vec<Rotation>> {
     let shape = array.shape();
     if shape[1] != 3 || shape[2] != 3 {
-        return Err(PyValueError::new_err(format!("rotations must have shape (V, 3, 3), got {shape:?}")));
+        return Err(PyValueError::new_err(format!(
+            "rotations must have shape (V, 3, 3), got {shape:?}"
+        )));
     }
-    let flat = array.as_slice().map_err(|_| PyValueError::new_err("rotations must be C-contiguous"))?;
+    let flat = array
+        .as_slice()
+        .map_err(|_| PyValueError::new_err("rotations must be C-contiguous"))?;
     Ok(flat.chunks_exact(9).map(Rotation::from_row_slice).collect())
 }
 
 /// Poses (model → camera) from `rotations` (C, 3, 3) and `translations` (C, 3).
-fn poses_from(rotations: &PyReadonlyArray3<'_, f64>, translations: &PyReadonlyArray2<'_, f64>) -> PyResult<Vec<Pose>> {
+fn poses_from(
+    rotations: &PyReadonlyArray3<'_, f64>,
+    translations: &PyReadonlyArray2<'_, f64>,
+) -> PyResult<Vec<Pose>> {
     let r = rotations_from(rotations)?;
     let t = triples(translations, "translations")?;
     if r.len() != t.len() {
         return Err(PyValueError::new_err("one translation per rotation"));
     }
-    Ok(r.iter().zip(t).map(|(r, t)| Pose { rotation: *r, translation: nalgebra::Vector3::from(*t) }).collect())
+    Ok(r.iter()
+        .zip(t)
+        .map(|(r, t)| Pose {
+            rotation: *r,
+            translation: nalgebra::Vector3::from(*t),
+        })
+        .collect())
 }
 
 /// Translations (metres) as a (C, 3) float64 array.
-fn translations_array<'a, 'py>(py: Python<'py>, translations: impl ExactSizeIterator<Item = &'a nalgebra::Vector3<f64>>) -> Bound<'py, PyArray2<f64>> {
+fn translations_array<'a, 'py>(
+    py: Python<'py>,
+    translations: impl ExactSizeIterator<Item = &'a nalgebra::Vector3<f64>>,
+) -> Bound<'py, PyArray2<f64>> {
     let c = translations.len();
     let flat: Vec<f64> = translations.flat_map(|t| [t.x, t.y, t.z]).collect();
-    Array::from_shape_vec((c, 3), flat).expect("C × 3").into_pyarray(py)
+    Array::from_shape_vec((c, 3), flat)
+        .expect("C × 3")
+        .into_pyarray(py)
 }
 
 fn points_array<'py>(py: Python<'py>, points: Vec<Point3>) -> Bound<'py, PyArray2<f32>> {
     let n = points.len();
-    Array::from_shape_vec((n, 3), points.into_flattened()).expect("n × 3 elements").into_pyarray(py)
+    Array::from_shape_vec((n, 3), points.into_flattened())
+        .expect("n × 3 elements")
+        .into_pyarray(py)
 }
 
 /// Standard model of a triangle mesh (vertices in metres):
@@ -116,7 +150,9 @@ fn standard_model_from_mesh<'py>(
     guarded(|| {
         let v = triples(&vertices, "vertices")?;
         let f = triples(&faces, "faces")?;
-        let m = py.detach(|| model::StandardModel::from_mesh(v, f, n_points, seed)).map_err(value_error)?;
+        let m = py
+            .detach(|| model::StandardModel::from_mesh(v, f, n_points, seed))
+            .map_err(value_error)?;
         model_tuple(py, m)
     })
 }
@@ -133,14 +169,23 @@ fn standard_model_from_points<'py>(
     guarded(|| {
         let p = triples(&points, "points")?;
         let n = triples(&normals, "normals")?;
-        let m = py.detach(|| model::StandardModel::from_points(p, n, n_points)).map_err(value_error)?;
+        let m = py
+            .detach(|| model::StandardModel::from_points(p, n, n_points))
+            .map_err(value_error)?;
         model_tuple(py, m)
     })
 }
 
 fn model_tuple<'py>(py: Python<'py>, m: model::StandardModel) -> PyResult<Bound<'py, PyAny>> {
     let centre = PyArray1::from_vec(py, m.centre.to_vec());
-    (points_array(py, m.points), points_array(py, m.normals), centre, m.scale, m.diameter, m.spacing)
+    (
+        points_array(py, m.points),
+        points_array(py, m.normals),
+        centre,
+        m.scale,
+        m.diameter,
+        m.spacing,
+    )
         .into_pyobject(py)
         .map(|t| t.into_any())
 }
@@ -148,14 +193,24 @@ fn model_tuple<'py>(py: Python<'py>, m: model::StandardModel) -> PyResult<Bound<
 /// `n` Fibonacci-sphere viewpoints: `(directions (n, 3), rotations (n, 3, 3))`.
 #[pyfunction]
 #[allow(clippy::type_complexity)]
-fn fibonacci_viewpoints(py: Python<'_>, n: usize) -> PyResult<(Bound<'_, PyArray2<f64>>, Bound<'_, PyArray3<f64>>)> {
+fn fibonacci_viewpoints(
+    py: Python<'_>,
+    n: usize,
+) -> PyResult<(Bound<'_, PyArray2<f64>>, Bound<'_, PyArray3<f64>>)> {
     guarded(|| {
         let (directions, rotations) = py.detach(|| views::viewpoints(n));
         let d: Vec<f64> = directions.iter().flat_map(|d| [d.x, d.y, d.z]).collect();
-        let r: Vec<f64> = rotations.iter().flat_map(|r| r.transpose().as_slice().to_vec()).collect();
+        let r: Vec<f64> = rotations
+            .iter()
+            .flat_map(|r| r.transpose().as_slice().to_vec())
+            .collect();
         Ok((
-            Array::from_shape_vec((n, 3), d).expect("n × 3").into_pyarray(py),
-            Array::from_shape_vec((n, 3, 3), r).expect("n × 3 × 3").into_pyarray(py),
+            Array::from_shape_vec((n, 3), d)
+                .expect("n × 3")
+                .into_pyarray(py),
+            Array::from_shape_vec((n, 3, 3), r)
+                .expect("n × 3 × 3")
+                .into_pyarray(py),
         ))
     })
 }
@@ -188,7 +243,10 @@ fn visible_mask<'py>(
         if p.len() != n.len() {
             return Err(PyValueError::new_err("points and normals differ in length"));
         }
-        Ok(PyArray1::from_vec(py, py.detach(|| visibility::visible_mask(p, n, spacing))))
+        Ok(PyArray1::from_vec(
+            py,
+            py.detach(|| visibility::visible_mask(p, n, spacing)),
+        ))
     })
 }
 
@@ -209,7 +267,9 @@ fn compute_maps<'py>(
         let p = triples(&points, "points")?;
         let n = triples(&normals, "normals")?;
         if p.len() != n.len() || p.is_empty() {
-            return Err(PyValueError::new_err("model points and normals must be non-empty and equal in length"));
+            return Err(PyValueError::new_err(
+                "model points and normals must be non-empty and equal in length",
+            ));
         }
         let rots = rotations_from(&rotations)?;
         let model = model::StandardModel {
@@ -222,9 +282,15 @@ fn compute_maps<'py>(
         };
         let out = py.detach(|| maps::compute_maps(&model, &rots, m));
         let v = rots.len();
-        let map_points = Array::from_shape_vec((v, m, 3), out.points.into_flattened()).expect("V × m × 3");
-        let centroids = Array::from_shape_vec((v, 3), out.centroids.into_flattened()).expect("V × 3");
-        (map_points.into_pyarray(py), centroids.into_pyarray(py), PyArray1::from_vec(py, out.visible))
+        let map_points =
+            Array::from_shape_vec((v, m, 3), out.points.into_flattened()).expect("V × m × 3");
+        let centroids =
+            Array::from_shape_vec((v, 3), out.centroids.into_flattened()).expect("V × 3");
+        (
+            map_points.into_pyarray(py),
+            centroids.into_pyarray(py),
+            PyArray1::from_vec(py, out.visible),
+        )
             .into_pyobject(py)
             .map(|t| t.into_any())
     })
@@ -241,7 +307,9 @@ fn map_neighbours<'py>(
     k: usize,
 ) -> PyResult<Bound<'py, PyArray3<u32>>> {
     guarded(|| {
-        let [b, m, three] = maps.shape() else { unreachable!("a 3-D array") };
+        let [b, m, three] = maps.shape() else {
+            unreachable!("a 3-D array")
+        };
         let (b, m) = (*b, *m);
         if *three != 3 || centres > m || k > m || centres == 0 || k == 0 {
             return Err(PyValueError::new_err(format!(
@@ -249,10 +317,14 @@ fn map_neighbours<'py>(
                 maps.shape()
             )));
         }
-        let flat = maps.as_slice().map_err(|_| PyValueError::new_err("maps must be C-contiguous"))?;
+        let flat = maps
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("maps must be C-contiguous"))?;
         let points = flat.as_chunks::<3>().0;
         let groups = py.detach(|| grouping::neighbours_of_maps(points, m, centres, k));
-        Ok(Array::from_shape_vec((b, centres, k), groups).expect("B × centres × k").into_pyarray(py))
+        Ok(Array::from_shape_vec((b, centres, k), groups)
+            .expect("B × centres × k")
+            .into_pyarray(py))
     })
 }
 
@@ -270,20 +342,34 @@ fn normalize_to_map<'py>(
             return Err(PyValueError::new_err("cloud is empty"));
         }
         let (map, centroid) = py.detach(|| maps::normalize_to_map(p, scale, m));
-        Ok((points_array(py, map), PyArray1::from_vec(py, centroid.to_vec())))
+        Ok((
+            points_array(py, map),
+            PyArray1::from_vec(py, centroid.to_vec()),
+        ))
     })
 }
 
 /// Rotation object → view frame for one direction (object frame, towards the camera).
 #[pyfunction]
-fn view_rotation<'py>(py: Python<'py>, direction: PyReadonlyArray1<'py, f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+fn view_rotation<'py>(
+    py: Python<'py>,
+    direction: PyReadonlyArray1<'py, f64>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
     guarded(|| {
-        let d = direction.as_slice().map_err(|_| PyValueError::new_err("direction must be contiguous"))?;
+        let d = direction
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("direction must be contiguous"))?;
         if d.len() != 3 || !d.iter().all(|v| v.is_finite()) || d.iter().all(|v| *v == 0.0) {
-            return Err(PyValueError::new_err("direction must be 3 finite values, not all zero"));
+            return Err(PyValueError::new_err(
+                "direction must be 3 finite values, not all zero",
+            ));
         }
         let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
-        Ok(Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec()).expect("3 × 3").into_pyarray(py))
+        Ok(
+            Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec())
+                .expect("3 × 3")
+                .into_pyarray(py),
+        )
     })
 }
 
@@ -297,10 +383,17 @@ fn top_k<'py>(
 ) -> PyResult<(Bound<'py, PyArray1<u32>>, Bound<'py, PyArray1<f32>>)> {
     guarded(|| {
         let dim = codes.shape()[1];
-        let c = codes.as_slice().map_err(|_| PyValueError::new_err("codes must be C-contiguous"))?;
-        let q = query.as_slice().map_err(|_| PyValueError::new_err("query must be contiguous"))?;
+        let c = codes
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("codes must be C-contiguous"))?;
+        let q = query
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("query must be contiguous"))?;
         if q.len() != dim || dim == 0 {
-            return Err(PyValueError::new_err(format!("query has {} values, codes have {dim}", q.len())));
+            return Err(PyValueError::new_err(format!(
+                "query has {} values, codes have {dim}",
+                q.len()
+            )));
         }
         let best = py.detach(|| search::top_k(c, dim, q, k));
         let (idx, sim): (Vec<u32>, Vec<f32>) = best.into_iter().map(|(i, s)| (i as u32, s)).unzip();
@@ -327,9 +420,17 @@ fn segment_object<'py>(
     guarded(|| {
         let c = triples(&cloud, "cloud")?;
         if !(diameter.is_finite() && diameter > 0.0) {
-            return Err(PyValueError::new_err(format!("diameter must be a positive number of metres, got {diameter}")));
+            return Err(PyValueError::new_err(format!(
+                "diameter must be a positive number of metres, got {diameter}"
+            )));
         }
-        let settings = SegmentSettings { shadow_spacings, max_shadowed_fraction, min_component_fraction, max_component_offset, ..SegmentSettings::default() };
+        let settings = SegmentSettings {
+            shadow_spacings,
+            max_shadowed_fraction,
+            min_component_fraction,
+            max_component_offset,
+            ..SegmentSettings::default()
+        };
         let found = py.detach(|| segment(c, diameter, &settings));
         Ok((PyArray1::from_vec(py, found.keep), found.spacing))
     })
@@ -345,14 +446,22 @@ struct PyModelIndex {
 #[pymethods]
 impl PyModelIndex {
     #[new]
-    fn new(py: Python<'_>, points: PyReadonlyArray2<'_, f32>, normals: PyReadonlyArray2<'_, f32>) -> PyResult<Self> {
+    fn new(
+        py: Python<'_>,
+        points: PyReadonlyArray2<'_, f32>,
+        normals: PyReadonlyArray2<'_, f32>,
+    ) -> PyResult<Self> {
         guarded(|| {
             let p = triples(&points, "points")?.to_vec();
             let n = triples(&normals, "normals")?.to_vec();
             if p.len() != n.len() || p.is_empty() {
-                return Err(PyValueError::new_err("points and normals must be non-empty and equal in length"));
+                return Err(PyValueError::new_err(
+                    "points and normals must be non-empty and equal in length",
+                ));
             }
-            Ok(Self { inner: py.detach(|| ModelIndex::new(p, n)) })
+            Ok(Self {
+                inner: py.detach(|| ModelIndex::new(p, n)),
+            })
         })
     }
 
@@ -372,7 +481,10 @@ impl PyModelIndex {
         guarded(|| {
             let k = triples(&keypoints, "keypoints")?;
             let poses = poses_from(&rotations, &translations)?;
-            Ok(PyArray1::from_vec(py, py.detach(|| search::verify(&self.inner, k, &poses))))
+            Ok(PyArray1::from_vec(
+                py,
+                py.detach(|| search::verify(&self.inner, k, &poses)),
+            ))
         })
     }
 
@@ -391,9 +503,12 @@ impl PyModelIndex {
             let o = triples(&observed, "observed")?;
             let poses = poses_from(&rotations, &translations)?;
             if !(max_distance.is_finite() && max_distance >= 0.0) {
-                return Err(PyValueError::new_err(format!("max_distance must be finite and non-negative, got {max_distance}")));
+                return Err(PyValueError::new_err(format!(
+                    "max_distance must be finite and non-negative, got {max_distance}"
+                )));
             }
-            let out = py.detach(|| align_translations(&self.inner, o, &poses, iterations, max_distance));
+            let out =
+                py.detach(|| align_translations(&self.inner, o, &poses, iterations, max_distance));
             Ok(translations_array(py, out.iter().map(|p| &p.translation)))
         })
     }
@@ -420,10 +535,19 @@ impl PyModelIndex {
             let o = triples(&observed, "observed")?;
             let c = triples(&cloud, "cloud")?;
             let poses = poses_from(&rotations, &translations)?;
-            if ![spacing, inlier_distance, free_space_tolerance].iter().all(|v| v.is_finite() && *v >= 0.0) {
-                return Err(PyValueError::new_err("spacing and distances must be finite and non-negative"));
+            if ![spacing, inlier_distance, free_space_tolerance]
+                .iter()
+                .all(|v| v.is_finite() && *v >= 0.0)
+            {
+                return Err(PyValueError::new_err(
+                    "spacing and distances must be finite and non-negative",
+                ));
             }
-            let settings = ScoreSettings { inlier_distance, free_space_tolerance, model_stride };
+            let settings = ScoreSettings {
+                inlier_distance,
+                free_space_tolerance,
+                model_stride,
+            };
             let scores = py.detach(|| {
                 let grid = DepthGrid::new(c, spacing, 2.0);
                 score_poses(&self.inner, o, &grid, &poses, &settings)
@@ -454,11 +578,19 @@ impl PyModelIndex {
         guarded(|| {
             let c = triples(&cloud, "cloud")?;
             let starts = poses_from(&rotations, &translations)?;
-            let out = py.detach(|| self.inner.refine_each(c, &starts, max_iterations, max_distance));
+            let out = py.detach(|| {
+                self.inner
+                    .refine_each(c, &starts, max_iterations, max_distance)
+            });
             let h = out.len();
-            let rot: Vec<f64> = out.iter().flat_map(|o| o.pose.rotation.transpose().as_slice().to_vec()).collect();
+            let rot: Vec<f64> = out
+                .iter()
+                .flat_map(|o| o.pose.rotation.transpose().as_slice().to_vec())
+                .collect();
             (
-                Array::from_shape_vec((h, 3, 3), rot).expect("H × 3 × 3").into_pyarray(py),
+                Array::from_shape_vec((h, 3, 3), rot)
+                    .expect("H × 3 × 3")
+                    .into_pyarray(py),
                 translations_array(py, out.iter().map(|o| &o.pose.translation)),
                 PyArray1::from_vec(py, out.iter().map(|o| o.iterations as u32).collect()),
                 PyArray1::from_vec(py, out.iter().map(|o| o.converged).collect()),

@@ -31,7 +31,10 @@ pub struct Pose {
 impl Pose {
     pub fn inverse(&self) -> Pose {
         let rt = self.rotation.transpose();
-        Pose { rotation: rt, translation: -(rt * self.translation) }
+        Pose {
+            rotation: rt,
+            translation: -(rt * self.translation),
+        }
     }
 
     pub fn apply(&self, p: &Point3) -> Vector3<f64> {
@@ -56,7 +59,11 @@ impl ModelIndex {
     pub fn new(points: Vec<Point3>, normals: Vec<Point3>) -> Self {
         assert_eq!(points.len(), normals.len(), "one normal per point");
         let tree = ImmutableKdTree::new_from_slice(&points);
-        Self { tree, points, normals }
+        Self {
+            tree,
+            points,
+            normals,
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -85,8 +92,14 @@ impl ModelIndex {
 
     /// Indices of the `k` nearest model points to `p`, nearest first.
     pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<usize> {
-        let Some(k) = NonZero::new(k) else { return Vec::new() };
-        self.tree.nearest_n::<SquaredEuclidean>(p, k).into_iter().map(|nn| nn.item as usize).collect()
+        let Some(k) = NonZero::new(k) else {
+            return Vec::new();
+        };
+        self.tree
+            .nearest_n::<SquaredEuclidean>(p, k)
+            .into_iter()
+            .map(|nn| nn.item as usize)
+            .collect()
     }
 
     /// [`refine`](Self::refine) from each of several `starts`: one result per
@@ -95,8 +108,17 @@ impl ModelIndex {
     /// verifies almost as well as the true one. Runs in the calling thread:
     /// a few sub-millisecond ICPs gain nothing from a thread pool, and
     /// waking one costs milliseconds on a busy CPU.
-    pub fn refine_each(&self, cloud: &[Point3], starts: &[Pose], max_iterations: usize, max_distance: f64) -> Vec<IcpResult> {
-        starts.iter().map(|start| self.refine(cloud, *start, max_iterations, max_distance)).collect()
+    pub fn refine_each(
+        &self,
+        cloud: &[Point3],
+        starts: &[Pose],
+        max_iterations: usize,
+        max_distance: f64,
+    ) -> Vec<IcpResult> {
+        starts
+            .iter()
+            .map(|start| self.refine(cloud, *start, max_iterations, max_distance))
+            .collect()
     }
 
     /// Point-to-plane ICP of an observed `cloud` (camera frame, metres) onto
@@ -104,10 +126,23 @@ impl ModelIndex {
     /// than `max_distance` metres, or than 3× the median pair distance, are
     /// ignored. Stops after `max_iterations` or when an update moves less
     /// than [`CONVERGED`].
-    pub fn refine(&self, cloud: &[Point3], initial: Pose, max_iterations: usize, max_distance: f64) -> IcpResult {
+    pub fn refine(
+        &self,
+        cloud: &[Point3],
+        initial: Pose,
+        max_iterations: usize,
+        max_distance: f64,
+    ) -> IcpResult {
         let mut to_model = initial.inverse();
-        let mut result = IcpResult { pose: initial, iterations: 0, converged: false, inliers: 0, rmse: f64::NAN };
-        let mut pairs: Vec<(Vector3<f64>, Vector3<f64>, Vector3<f64>, f64)> = Vec::with_capacity(cloud.len());
+        let mut result = IcpResult {
+            pose: initial,
+            iterations: 0,
+            converged: false,
+            inliers: 0,
+            rmse: f64::NAN,
+        };
+        let mut pairs: Vec<(Vector3<f64>, Vector3<f64>, Vector3<f64>, f64)> =
+            Vec::with_capacity(cloud.len());
         for iteration in 1..=max_iterations {
             pairs.clear();
             for p in cloud {
@@ -118,7 +153,12 @@ impl ModelIndex {
                 if d <= max_distance {
                     let q = self.points[i];
                     let n = self.normals[i];
-                    pairs.push((source, Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64), Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64), d));
+                    pairs.push((
+                        source,
+                        Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64),
+                        Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64),
+                        d,
+                    ));
                 }
             }
             if pairs.len() < 6 {
@@ -148,7 +188,10 @@ impl ModelIndex {
             let Some(chol) = jtj.cholesky() else { break };
             let x = chol.solve(&(-jtr));
             let omega = Vector3::new(x[0], x[1], x[2]);
-            let delta = Pose { rotation: *Rotation3::new(omega).matrix(), translation: Vector3::new(x[3], x[4], x[5]) };
+            let delta = Pose {
+                rotation: *Rotation3::new(omega).matrix(),
+                translation: Vector3::new(x[3], x[4], x[5]),
+            };
             to_model = Pose {
                 rotation: delta.rotation * to_model.rotation,
                 translation: delta.rotation * to_model.translation + delta.translation,
@@ -179,7 +222,8 @@ mod tests {
     fn bracket() -> StandardModel {
         let (v1, f1) = cube_mesh(0.05);
         let (v2, f2) = cube_mesh(0.02);
-        let mut vertices: Vec<[f64; 3]> = v1.iter().map(|p| [p[0] * 1.6, p[1] * 0.6, p[2]]).collect();
+        let mut vertices: Vec<[f64; 3]> =
+            v1.iter().map(|p| [p[0] * 1.6, p[1] * 0.6, p[2]]).collect();
         vertices.extend(v2.iter().map(|p| [p[0] + 0.06, p[1] + 0.03, p[2] + 0.07]));
         let mut faces = f1.clone();
         faces.extend(f2.iter().map(|f| f.map(|i| i + 8)));
@@ -187,49 +231,98 @@ mod tests {
     }
 
     fn pose(axis: Vector3<f64>, angle: f64, t: Vector3<f64>) -> Pose {
-        Pose { rotation: *Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle).matrix(), translation: t }
+        Pose {
+            rotation: *Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle)
+                .matrix(),
+            translation: t,
+        }
     }
 
     #[test]
     fn recovers_a_known_transform_from_a_perturbed_start() {
         let model = bracket();
         let index = ModelIndex::new(model.points.clone(), model.normals.clone());
-        let truth = pose(Vector3::new(0.3, -1.0, 0.5), 2.0, Vector3::new(0.05, -0.02, 0.7));
-        let cloud: Vec<Point3> = model.points.iter().step_by(3).map(|p| {
-            let v = truth.apply(p);
-            [v.x as f32, v.y as f32, v.z as f32]
-        }).collect();
-        let nudge = pose(Vector3::new(1.0, 1.0, 0.0), 0.12, Vector3::new(0.008, -0.006, 0.01));
-        let start = Pose { rotation: nudge.rotation * truth.rotation, translation: truth.translation + nudge.translation };
+        let truth = pose(
+            Vector3::new(0.3, -1.0, 0.5),
+            2.0,
+            Vector3::new(0.05, -0.02, 0.7),
+        );
+        let cloud: Vec<Point3> = model
+            .points
+            .iter()
+            .step_by(3)
+            .map(|p| {
+                let v = truth.apply(p);
+                [v.x as f32, v.y as f32, v.z as f32]
+            })
+            .collect();
+        let nudge = pose(
+            Vector3::new(1.0, 1.0, 0.0),
+            0.12,
+            Vector3::new(0.008, -0.006, 0.01),
+        );
+        let start = Pose {
+            rotation: nudge.rotation * truth.rotation,
+            translation: truth.translation + nudge.translation,
+        };
         let out = index.refine(&cloud, start, 30, 0.05);
-        let angle = Rotation3::from_matrix(&(out.pose.rotation * truth.rotation.transpose())).angle();
-        assert!(angle.to_degrees() < 0.05, "rotation error {}°", angle.to_degrees());
+        let angle =
+            Rotation3::from_matrix(&(out.pose.rotation * truth.rotation.transpose())).angle();
+        assert!(
+            angle.to_degrees() < 0.05,
+            "rotation error {}°",
+            angle.to_degrees()
+        );
         assert!((out.pose.translation - truth.translation).norm() < 1e-4);
-        assert!(out.converged && out.rmse < 1e-4 && out.inliers > 1000, "{out:?}");
+        assert!(
+            out.converged && out.rmse < 1e-4 && out.inliers > 1000,
+            "{out:?}"
+        );
     }
 
     #[test]
     fn refining_several_starts_gives_each_start_its_own_result() {
         let model = bracket();
         let index = ModelIndex::new(model.points.clone(), model.normals.clone());
-        let truth = pose(Vector3::new(1.0, 0.2, -0.4), 0.7, Vector3::new(0.0, 0.03, 0.6));
-        let cloud: Vec<Point3> = model.points.iter().step_by(5).map(|p| {
-            let v = truth.apply(p);
-            [v.x as f32, v.y as f32, v.z as f32]
-        }).collect();
+        let truth = pose(
+            Vector3::new(1.0, 0.2, -0.4),
+            0.7,
+            Vector3::new(0.0, 0.03, 0.6),
+        );
+        let cloud: Vec<Point3> = model
+            .points
+            .iter()
+            .step_by(5)
+            .map(|p| {
+                let v = truth.apply(p);
+                [v.x as f32, v.y as f32, v.z as f32]
+            })
+            .collect();
         let starts: Vec<Pose> = [0.05, 0.1, 2.5]
             .iter()
-            .map(|&a| { let n = pose(Vector3::new(0.0, 1.0, 1.0), a, Vector3::zeros()); Pose { rotation: n.rotation * truth.rotation, ..truth } })
+            .map(|&a| {
+                let n = pose(Vector3::new(0.0, 1.0, 1.0), a, Vector3::zeros());
+                Pose {
+                    rotation: n.rotation * truth.rotation,
+                    ..truth
+                }
+            })
             .collect();
         let each = index.refine_each(&cloud, &starts, 25, 0.05);
         assert_eq!(each.len(), 3);
         for (start, out) in starts.iter().zip(&each) {
             let alone = index.refine(&cloud, *start, 25, 0.05);
-            assert_eq!(out.pose, alone.pose, "several starts at once and one at a time must agree exactly");
+            assert_eq!(
+                out.pose, alone.pose,
+                "several starts at once and one at a time must agree exactly"
+            );
         }
         // The near starts converge to the truth; the turned-over one fits worse.
         assert!(each[0].rmse < 1e-4 && each[1].rmse < 1e-4, "{each:?}");
-        assert!(each[2].rmse > 10.0 * each[0].rmse || each[2].inliers < each[0].inliers, "{each:?}");
+        assert!(
+            each[2].rmse > 10.0 * each[0].rmse || each[2].inliers < each[0].inliers,
+            "{each:?}"
+        );
     }
 
     #[test]
@@ -238,7 +331,11 @@ mod tests {
         let index = ModelIndex::new(model.points.clone(), model.normals.clone());
         for q in [[0.0f32, 0.0, 0.0], [0.1, 0.02, -0.03], [-0.2, 0.5, 0.1]] {
             let (i, sq) = index.nearest(&q);
-            let brute = model.points.iter().map(|p| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()).fold(f32::INFINITY, f32::min);
+            let brute = model
+                .points
+                .iter()
+                .map(|p| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>())
+                .fold(f32::INFINITY, f32::min);
             assert!((sq - brute).abs() < 1e-9);
             assert_eq!(index.nearest_k(&q, 3)[0], i);
         }

@@ -77,7 +77,13 @@ fn update_and_argmax(xs: &[f32], ys: &[f32], zs: &[f32], min_sq: &mut [f32], c: 
 
 /// Portable kernel: per lane, the largest lowered distance and where it is.
 #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
-fn update_lanes(xs: &[f32], ys: &[f32], zs: &[f32], min_sq: &mut [f32], c: Point3) -> ([f32; LANES], [u32; LANES]) {
+fn update_lanes(
+    xs: &[f32],
+    ys: &[f32],
+    zs: &[f32],
+    min_sq: &mut [f32],
+    c: Point3,
+) -> ([f32; LANES], [u32; LANES]) {
     let mut best = [f32::NEG_INFINITY; LANES];
     let mut best_at = [0u32; LANES];
     for i in 0..xs.len() {
@@ -123,14 +129,20 @@ mod sse2 {
                 let dx = _mm_sub_ps(_mm_loadu_ps(px.add(k)), cx);
                 let dy = _mm_sub_ps(_mm_loadu_ps(py.add(k)), cy);
                 let dz = _mm_sub_ps(_mm_loadu_ps(pz.add(k)), cz);
-                let d = _mm_add_ps(_mm_add_ps(_mm_mul_ps(dx, dx), _mm_mul_ps(dy, dy)), _mm_mul_ps(dz, dz));
+                let d = _mm_add_ps(
+                    _mm_add_ps(_mm_mul_ps(dx, dx), _mm_mul_ps(dy, dy)),
+                    _mm_mul_ps(dz, dz),
+                );
                 // minps(d, old) returns old when d is not smaller: `if d < old {d} else {old}`.
                 let lowered = _mm_min_ps(d, _mm_loadu_ps(pd.add(k)));
                 _mm_storeu_ps(pd.add(k), lowered);
                 let better = _mm_cmpgt_ps(lowered, best[h]);
                 best[h] = _mm_or_ps(_mm_and_ps(better, lowered), _mm_andnot_ps(better, best[h]));
                 let better_i = _mm_castps_si128(better);
-                best_at[h] = _mm_or_si128(_mm_and_si128(better_i, index[h]), _mm_andnot_si128(better_i, best_at[h]));
+                best_at[h] = _mm_or_si128(
+                    _mm_and_si128(better_i, index[h]),
+                    _mm_andnot_si128(better_i, best_at[h]),
+                );
                 index[h] = _mm_add_epi32(index[h], step);
             }
             i += LANES;
@@ -153,7 +165,13 @@ mod tests {
     fn random_cloud(n: usize, seed: u64) -> Vec<Point3> {
         let mut rng = SplitMix64::new(seed);
         (0..n)
-            .map(|_| [rng.next_f64() as f32, rng.next_f64() as f32, rng.next_f64() as f32])
+            .map(|_| {
+                [
+                    rng.next_f64() as f32,
+                    rng.next_f64() as f32,
+                    rng.next_f64() as f32,
+                ]
+            })
             .collect()
     }
 
@@ -205,7 +223,12 @@ mod tests {
 
     #[test]
     fn starts_at_the_point_farthest_from_the_centroid() {
-        let cloud = vec![[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 0.2, 0.0]];
+        let cloud = vec![
+            [0.0, 0.0, 0.0],
+            [0.1, 0.0, 0.0],
+            [5.0, 0.0, 0.0],
+            [0.0, 0.2, 0.0],
+        ];
         let idx = farthest_point_sample(&cloud, 2);
         assert_eq!(idx, vec![2, 3]); // (0, 0.2, 0) is 5.004 from (5, 0, 0)
     }

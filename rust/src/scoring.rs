@@ -41,20 +41,37 @@ impl DepthGrid {
     /// times the cloud's point `spacing` (metres) at its median depth, so
     /// that an observed surface fills its cells without gaps.
     pub fn new(cloud: &[Point3], spacing: f64, cells_per_point: f64) -> Self {
-        let front: Vec<(f64, f64, f32)> =
-            cloud.iter().filter(|p| p[2] > 0.0).map(|p| (p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64, p[2])).collect();
+        let front: Vec<(f64, f64, f32)> = cloud
+            .iter()
+            .filter(|p| p[2] > 0.0)
+            .map(|p| (p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64, p[2]))
+            .collect();
         if front.is_empty() {
-            return Self { cell: 1.0, u0: 0.0, v0: 0.0, cols: 0, rows: 0, nearest: Vec::new() };
+            return Self {
+                cell: 1.0,
+                u0: 0.0,
+                v0: 0.0,
+                cols: 0,
+                rows: 0,
+                nearest: Vec::new(),
+            };
         }
         let mut depths: Vec<f32> = front.iter().map(|p| p.2).collect();
         let mid = depths.len() / 2;
         let median_depth = *depths.select_nth_unstable_by(mid, f32::total_cmp).1 as f64;
-        let (mut u0, mut u1, mut v0, mut v1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+        let (mut u0, mut u1, mut v0, mut v1) = (
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        );
         for &(u, v, _) in &front {
             (u0, u1, v0, v1) = (u0.min(u), u1.max(u), v0.min(v), v1.max(v));
         }
         let span = (u1 - u0).max(v1 - v0);
-        let cell = (cells_per_point * spacing / median_depth).max(span / MAX_GRID_SIDE as f64).max(1e-9);
+        let cell = (cells_per_point * spacing / median_depth)
+            .max(span / MAX_GRID_SIDE as f64)
+            .max(1e-9);
         let cols = ((u1 - u0) / cell) as usize + 1;
         let rows = ((v1 - v0) / cell) as usize + 1;
         let mut nearest = vec![f32::INFINITY; cols * rows];
@@ -62,7 +79,14 @@ impl DepthGrid {
             let i = ((v - v0) / cell) as usize * cols + ((u - u0) / cell) as usize;
             nearest[i] = nearest[i].min(z);
         }
-        Self { cell, u0, v0, cols, rows, nearest }
+        Self {
+            cell,
+            u0,
+            v0,
+            cols,
+            rows,
+            nearest,
+        }
     }
 
     /// The nearest observed depth (metres) along the ray through `p`
@@ -71,7 +95,10 @@ impl DepthGrid {
         if p.z <= 0.0 {
             return None;
         }
-        let (cu, cv) = ((p.x / p.z - self.u0) / self.cell, (p.y / p.z - self.v0) / self.cell);
+        let (cu, cv) = (
+            (p.x / p.z - self.u0) / self.cell,
+            (p.y / p.z - self.v0) / self.cell,
+        );
         if cu < 0.0 || cv < 0.0 || cu >= self.cols as f64 || cv >= self.rows as f64 {
             return None;
         }
@@ -109,7 +136,13 @@ pub struct PoseScore {
 /// its nearest model point (pairs farther than `max_distance` metres
 /// ignored) is added. A candidate's translation comes from centroids, which
 /// an occluder or a cut mask shifts; its rotation is kept as retrieved.
-pub fn align_translations(index: &ModelIndex, observed: &[Point3], poses: &[Pose], iterations: usize, max_distance: f64) -> Vec<Pose> {
+pub fn align_translations(
+    index: &ModelIndex,
+    observed: &[Point3],
+    poses: &[Pose],
+    iterations: usize,
+    max_distance: f64,
+) -> Vec<Pose> {
     poses
         .iter()
         .map(|start| {
@@ -139,11 +172,26 @@ pub fn align_translations(index: &ModelIndex, observed: &[Point3], poses: &[Pose
 
 /// Scores each pose (model → camera) against `observed` points and the
 /// `grid` of the whole observed cloud.
-pub fn score_poses(index: &ModelIndex, observed: &[Point3], grid: &DepthGrid, poses: &[Pose], settings: &ScoreSettings) -> Vec<PoseScore> {
-    poses.iter().map(|pose| score_pose(index, observed, grid, pose, settings)).collect()
+pub fn score_poses(
+    index: &ModelIndex,
+    observed: &[Point3],
+    grid: &DepthGrid,
+    poses: &[Pose],
+    settings: &ScoreSettings,
+) -> Vec<PoseScore> {
+    poses
+        .iter()
+        .map(|pose| score_pose(index, observed, grid, pose, settings))
+        .collect()
 }
 
-fn score_pose(index: &ModelIndex, observed: &[Point3], grid: &DepthGrid, pose: &Pose, settings: &ScoreSettings) -> PoseScore {
+fn score_pose(
+    index: &ModelIndex,
+    observed: &[Point3],
+    grid: &DepthGrid,
+    pose: &Pose,
+    settings: &ScoreSettings,
+) -> PoseScore {
     let to_model = pose.inverse();
     let (mut total, mut inliers) = (0.0f64, 0usize);
     for p in observed {
@@ -173,7 +221,11 @@ fn score_pose(index: &ModelIndex, observed: &[Point3], grid: &DepthGrid, pose: &
     PoseScore {
         fit: total / count,
         inlier_fraction: inliers as f64 / count,
-        free_space_violation: if on_rays == 0 { 0.0 } else { violations as f64 / on_rays as f64 },
+        free_space_violation: if on_rays == 0 {
+            0.0
+        } else {
+            violations as f64 / on_rays as f64
+        },
     }
 }
 
@@ -187,7 +239,10 @@ mod tests {
         let (mut points, mut normals) = (Vec::new(), Vec::new());
         for axis in 0..3 {
             let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
-            let (na, nb) = ((2.0 * half[a] / spacing) as usize + 1, (2.0 * half[b] / spacing) as usize + 1);
+            let (na, nb) = (
+                (2.0 * half[a] / spacing) as usize + 1,
+                (2.0 * half[b] / spacing) as usize + 1,
+            );
             for sign in [-1.0f32, 1.0] {
                 for i in 0..na {
                     for j in 0..nb {
@@ -218,7 +273,12 @@ mod tests {
         (points, normals)
     }
 
-    fn posed(points: &[Point3], normals: &[Point3], pose: &Pose, camera_facing_only: bool) -> Vec<Point3> {
+    fn posed(
+        points: &[Point3],
+        normals: &[Point3],
+        pose: &Pose,
+        camera_facing_only: bool,
+    ) -> Vec<Point3> {
         points
             .iter()
             .zip(normals)
@@ -235,7 +295,11 @@ mod tests {
     }
 
     fn settings() -> ScoreSettings {
-        ScoreSettings { inlier_distance: 0.005, free_space_tolerance: 0.005, model_stride: 1 }
+        ScoreSettings {
+            inlier_distance: 0.005,
+            free_space_tolerance: 0.005,
+            model_stride: 1,
+        }
     }
 
     #[test]
@@ -243,21 +307,41 @@ mod tests {
         let cloud: Vec<Point3> = vec![[0.0, 0.0, 0.5], [0.0, 0.0, 0.7], [0.1, 0.0, 0.5]];
         let grid = DepthGrid::new(&cloud, 0.01, 2.0);
         assert_eq!(grid.observed_depth(&Vector3::new(0.0, 0.0, 0.3)), Some(0.5));
-        assert_eq!(grid.observed_depth(&Vector3::new(0.0, 0.0, -0.3)), None, "behind the camera");
-        assert_eq!(grid.observed_depth(&Vector3::new(0.0, 0.5, 0.5)), None, "outside what was seen");
+        assert_eq!(
+            grid.observed_depth(&Vector3::new(0.0, 0.0, -0.3)),
+            None,
+            "behind the camera"
+        );
+        assert_eq!(
+            grid.observed_depth(&Vector3::new(0.0, 0.5, 0.5)),
+            None,
+            "outside what was seen"
+        );
     }
 
     #[test]
     fn free_space_rejects_a_flipped_pose_that_surface_fit_cannot() {
         let (points, normals) = plate_with_knob();
         let index = ModelIndex::new(points.clone(), normals.clone());
-        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
+        let truth = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, 0.5),
+        };
         let cloud = posed(&points, &normals, &truth, true);
-        let flip = Pose { rotation: *Rotation3::from_euler_angles(0.0, std::f64::consts::PI, 0.0).matrix(), ..truth };
+        let flip = Pose {
+            rotation: *Rotation3::from_euler_angles(0.0, std::f64::consts::PI, 0.0).matrix(),
+            ..truth
+        };
         let grid = DepthGrid::new(&cloud, 0.002, 2.0);
         let scores = score_poses(&index, &cloud, &grid, &[truth, flip], &settings());
-        assert!(scores[0].inlier_fraction > 0.999 && scores[1].inlier_fraction > 0.999, "{scores:?}");
-        assert!((scores[0].fit - scores[1].fit).abs() < 1e-4, "surface fit alone should not tell them apart: {scores:?}");
+        assert!(
+            scores[0].inlier_fraction > 0.999 && scores[1].inlier_fraction > 0.999,
+            "{scores:?}"
+        );
+        assert!(
+            (scores[0].fit - scores[1].fit).abs() < 1e-4,
+            "surface fit alone should not tell them apart: {scores:?}"
+        );
         assert!(scores[0].free_space_violation < 0.005, "{scores:?}");
         assert!(scores[1].free_space_violation > 0.03, "{scores:?}");
     }
@@ -266,14 +350,23 @@ mod tests {
     fn aligning_translations_undoes_a_shift() {
         let (points, normals) = plate_with_knob();
         let index = ModelIndex::new(points.clone(), normals.clone());
-        let truth = Pose { rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.5).matrix(), translation: Vector3::new(0.01, 0.0, 0.5) };
+        let truth = Pose {
+            rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.5).matrix(),
+            translation: Vector3::new(0.01, 0.0, 0.5),
+        };
         let cloud = posed(&points, &normals, &truth, true);
-        let shifted = Pose { translation: truth.translation + Vector3::new(0.006, -0.004, 0.008), ..truth };
+        let shifted = Pose {
+            translation: truth.translation + Vector3::new(0.006, -0.004, 0.008),
+            ..truth
+        };
         let aligned = align_translations(&index, &cloud, &[shifted], 10, 0.03)[0];
         // Depth (what free space judges) is resolved at once; sliding along
         // the plate's plane only converges slowly (edges alone constrain it).
         let error = aligned.translation - truth.translation;
-        assert!(error.z.abs() < 0.001 && error.norm() < 0.5 * 0.0108, "{error:?}");
+        assert!(
+            error.z.abs() < 0.001 && error.norm() < 0.5 * 0.0108,
+            "{error:?}"
+        );
         assert_eq!(aligned.rotation, truth.rotation);
     }
 
@@ -281,25 +374,40 @@ mod tests {
     fn hidden_model_parts_are_not_violations() {
         let (points, normals) = plate_with_knob();
         let index = ModelIndex::new(points.clone(), normals.clone());
-        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
+        let truth = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, 0.5),
+        };
         // An occluder hides the half x > 0: those rays carry no observation.
-        let cloud: Vec<Point3> = posed(&points, &normals, &truth, true).into_iter().filter(|p| p[0] < 0.0).collect();
+        let cloud: Vec<Point3> = posed(&points, &normals, &truth, true)
+            .into_iter()
+            .filter(|p| p[0] < 0.0)
+            .collect();
         let grid = DepthGrid::new(&cloud, 0.002, 2.0);
         let score = score_poses(&index, &cloud, &grid, &[truth], &settings())[0];
-        assert!(score.free_space_violation < 0.01 && score.inlier_fraction > 0.99, "{score:?}");
+        assert!(
+            score.free_space_violation < 0.01 && score.inlier_fraction > 0.99,
+            "{score:?}"
+        );
     }
 
     #[test]
     fn background_points_cost_a_bounded_amount() {
         let (points, normals) = plate_with_knob();
         let index = ModelIndex::new(points.clone(), normals.clone());
-        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
+        let truth = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, 0.5),
+        };
         let mut cloud = posed(&points, &normals, &truth, true);
         let object = cloud.len();
         cloud.extend((0..object / 4).map(|i| [-0.1 + 0.0002 * i as f32, 0.08, 0.6]));
         let grid = DepthGrid::new(&cloud, 0.002, 2.0);
         let score = score_poses(&index, &cloud, &grid, &[truth], &settings())[0];
-        assert!((score.inlier_fraction - object as f64 / cloud.len() as f64).abs() < 0.01, "{score:?}");
+        assert!(
+            (score.inlier_fraction - object as f64 / cloud.len() as f64).abs() < 0.01,
+            "{score:?}"
+        );
         assert!(score.fit <= 0.005 * 0.21, "{score:?}");
     }
 }

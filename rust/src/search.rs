@@ -7,7 +7,10 @@ use crate::Point3;
 /// The `k` codes most similar to `query` (dot product of unit codes = cosine),
 /// best first, as `(view index, similarity)`. `codes` is row-major (V × dim).
 pub fn top_k(codes: &[f32], dim: usize, query: &[f32], k: usize) -> Vec<(usize, f32)> {
-    assert!(dim > 0 && codes.len() % dim == 0 && query.len() == dim, "codes must be V × dim");
+    assert!(
+        dim > 0 && codes.len() % dim == 0 && query.len() == dim,
+        "codes must be V × dim"
+    );
     let mut scored: Vec<(usize, f32)> = codes
         .chunks_exact(dim)
         .enumerate()
@@ -52,7 +55,9 @@ mod tests {
     #[test]
     fn top_k_matches_a_full_sort() {
         let dim = 4;
-        let codes: Vec<f32> = (0..400).map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0).collect();
+        let codes: Vec<f32> = (0..400)
+            .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
+            .collect();
         let query = [0.5f32, -0.5, 0.5, 0.5];
         let mut all: Vec<(usize, f32)> = codes
             .chunks_exact(dim)
@@ -69,18 +74,32 @@ mod tests {
         let points: Vec<Point3> = (0..2000)
             .map(|i| {
                 let t = i as f32 * 0.01;
-                [0.05 * t.cos(), 0.03 * (2.0 * t).sin(), 0.002 * i as f32 - 2.0]
+                [
+                    0.05 * t.cos(),
+                    0.03 * (2.0 * t).sin(),
+                    0.002 * i as f32 - 2.0,
+                ]
             })
             .map(|p| [p[0], p[1], p[2] * 0.04])
             .collect();
         let normals = vec![[0.0, 0.0, 1.0]; points.len()];
         let index = ModelIndex::new(points.clone(), normals);
-        let truth = Pose { rotation: Matrix3::identity(), translation: Vector3::new(0.0, 0.0, 0.5) };
-        let keypoints: Vec<Point3> = points.iter().step_by(61).map(|p| {
-            let v = truth.apply(p);
-            [v.x as f32, v.y as f32, v.z as f32]
-        }).collect();
-        let wrong = Pose { rotation: *Rotation3::from_euler_angles(0.0, 0.0, 0.5).matrix(), ..truth };
+        let truth = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, 0.5),
+        };
+        let keypoints: Vec<Point3> = points
+            .iter()
+            .step_by(61)
+            .map(|p| {
+                let v = truth.apply(p);
+                [v.x as f32, v.y as f32, v.z as f32]
+            })
+            .collect();
+        let wrong = Pose {
+            rotation: *Rotation3::from_euler_angles(0.0, 0.0, 0.5).matrix(),
+            ..truth
+        };
         let scores = verify(&index, &keypoints, &[wrong, truth]);
         assert!(scores[1] < 1e-6 && scores[0] > 1e-3, "{scores:?}");
     }

@@ -55,7 +55,15 @@ pub struct SegmentSettings {
 
 impl Default for SegmentSettings {
     fn default() -> Self {
-        Self { neighbours: 8, outlier_sigmas: 7.0, cluster_spacings: 3.0, min_component_fraction: 0.01, max_component_offset: 0.8, max_shadowed_fraction: 0.5, shadow_spacings: 4.0 }
+        Self {
+            neighbours: 8,
+            outlier_sigmas: 7.0,
+            cluster_spacings: 3.0,
+            min_component_fraction: 0.01,
+            max_component_offset: 0.8,
+            max_shadowed_fraction: 0.5,
+            shadow_spacings: 4.0,
+        }
     }
 }
 
@@ -75,7 +83,10 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     let n = cloud.len();
     let k = settings.neighbours.max(1);
     if n < 2 * (k + 1) {
-        return Segmentation { keep: vec![true; n], spacing: 0.0 };
+        return Segmentation {
+            keep: vec![true; n],
+            spacing: 0.0,
+        };
     }
     let spacing = median_spacing(cloud).max(1e-6);
     let radius = (settings.cluster_spacings * spacing) as f32;
@@ -95,7 +106,10 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // 1. Outliers: points with far fewer neighbours than is typical of the
     //    cloud's surfaces (flying pixels hang alone between two surfaces).
     let typical = median_of(&counts);
-    let inlier: Vec<bool> = counts.iter().map(|&c| c >= (typical / (1.0 + settings.outlier_sigmas)).max(k as f64 / 4.0)).collect();
+    let inlier: Vec<bool> = counts
+        .iter()
+        .map(|&c| c >= (typical / (1.0 + settings.outlier_sigmas)).max(k as f64 / 4.0))
+        .collect();
 
     // 2. Components of the inliers' neighbour graph.
     let mut components = UnionFind::new(n);
@@ -116,7 +130,13 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // Components in the shadow of another (beside it in the image, behind
     // it) are background the mask picked up, whatever their size.
     let root_of: Vec<usize> = (0..n).map(|i| components.find(i)).collect();
-    let shadowed = in_shadow(cloud, &root_of, &inlier, settings.shadow_spacings * spacing, radius as f64);
+    let shadowed = in_shadow(
+        cloud,
+        &root_of,
+        &inlier,
+        settings.shadow_spacings * spacing,
+        radius as f64,
+    );
     let mut shadowed_count = vec![0usize; n];
     for i in (0..n).filter(|&i| shadowed[i]) {
         shadowed_count[root_of[i]] += 1;
@@ -124,16 +144,28 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // A shadowed component (nearly) wholly inside the rest's silhouette is
     // the object's own (a can's lid behind its rim); spill lies outside it,
     // or only partly inside where the silhouette is concave.
-    let rays: Vec<[f64; 2]> = cloud.iter().map(|p| [p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64]).collect();
+    let rays: Vec<[f64; 2]> = cloud
+        .iter()
+        .map(|p| [p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64])
+        .collect();
     let mut lit_root = vec![false; n];
     for root in (0..n).filter(|&r| size[r] > 0) {
-        lit_root[root] = (shadowed_count[root] as f64) < settings.max_shadowed_fraction * size[root] as f64 || {
-            let others: Vec<[f64; 2]> = (0..n).filter(|&i| inlier[i] && root_of[i] != root && cloud[i][2] > 0.0).map(|i| rays[i]).collect();
-            let hull = convex_hull(others);
-            let mine: Vec<usize> = (0..n).filter(|&i| inlier[i] && root_of[i] == root).collect();
-            let inside = mine.iter().filter(|&&i| inside_convex(&hull, rays[i])).count();
-            10 * inside >= 9 * mine.len()
-        };
+        lit_root[root] =
+            (shadowed_count[root] as f64) < settings.max_shadowed_fraction * size[root] as f64 || {
+                let others: Vec<[f64; 2]> = (0..n)
+                    .filter(|&i| inlier[i] && root_of[i] != root && cloud[i][2] > 0.0)
+                    .map(|i| rays[i])
+                    .collect();
+                let hull = convex_hull(others);
+                let mine: Vec<usize> = (0..n)
+                    .filter(|&i| inlier[i] && root_of[i] == root)
+                    .collect();
+                let inside = mine
+                    .iter()
+                    .filter(|&&i| inside_convex(&hull, rays[i]))
+                    .count();
+                10 * inside >= 9 * mine.len()
+            };
     }
     let lit = |root: usize| lit_root[root];
     // The object: the largest lit component (ties to the lowest root, so the
@@ -153,15 +185,26 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
                     && distance(centroid(root), anchor) <= settings.max_component_offset * diameter)
         })
         .collect();
-    Segmentation { keep: (0..n).map(|i| inlier[i] && keep_root[root_of[i]]).collect(), spacing }
+    Segmentation {
+        keep: (0..n).map(|i| inlier[i] && keep_root[root_of[i]]).collect(),
+        spacing,
+    }
 }
 
 /// Which inlier points lie in the shadow of another component: a point of
 /// another component lies within `lateral` metres of it by viewing direction
 /// (measured at the point's depth) and nearer the camera by more than `gap` metres.
-fn in_shadow(cloud: &[Point3], root_of: &[usize], inlier: &[bool], lateral: f64, gap: f64) -> Vec<bool> {
+fn in_shadow(
+    cloud: &[Point3],
+    root_of: &[usize],
+    inlier: &[bool],
+    lateral: f64,
+    gap: f64,
+) -> Vec<bool> {
     let mut shadowed = vec![false; cloud.len()];
-    let front: Vec<usize> = (0..cloud.len()).filter(|&i| inlier[i] && cloud[i][2] > 0.0).collect();
+    let front: Vec<usize> = (0..cloud.len())
+        .filter(|&i| inlier[i] && cloud[i][2] > 0.0)
+        .collect();
     if front.is_empty() {
         return shadowed;
     }
@@ -169,10 +212,15 @@ fn in_shadow(cloud: &[Point3], root_of: &[usize], inlier: &[bool], lateral: f64,
     let reach = (lateral / median_of(&depths)) as f32;
     depths.clear();
     // Directions (x/z, y/z) as points on the plane z = 1.
-    let rays: Vec<Point3> = front.iter().map(|&i| [cloud[i][0] / cloud[i][2], cloud[i][1] / cloud[i][2], 0.0]).collect();
+    let rays: Vec<Point3> = front
+        .iter()
+        .map(|&i| [cloud[i][0] / cloud[i][2], cloud[i][1] / cloud[i][2], 0.0])
+        .collect();
     CellGrid::new(&rays, reach.max(1e-9), true).for_each_pair(|a, b| {
         let (i, j) = (front[a], front[b]);
-        if !shadowed[i] && root_of[j] != root_of[i] && (cloud[i][2] - cloud[j][2]) as f64 > gap
+        if !shadowed[i]
+            && root_of[j] != root_of[i]
+            && (cloud[i][2] - cloud[j][2]) as f64 > gap
             && squared_distance(&rays[a], &rays[b]) <= reach * reach
         {
             shadowed[i] = true;
@@ -190,7 +238,11 @@ fn median_spacing(cloud: &[Point3]) -> f64 {
     let nearest: Vec<f64> = cloud
         .iter()
         .step_by(step)
-        .filter_map(|p| tree.nearest_n::<SquaredEuclidean>(p, two).get(1).map(|nn| (nn.distance as f64).sqrt()))
+        .filter_map(|p| {
+            tree.nearest_n::<SquaredEuclidean>(p, two)
+                .get(1)
+                .map(|nn| (nn.distance as f64).sqrt())
+        })
         .collect();
     median_of(&nearest)
 }
@@ -222,7 +274,8 @@ impl Hasher for CellHasher {
         for chunk in bytes.chunks(4) {
             let mut word = [0u8; 4];
             word[..chunk.len()].copy_from_slice(chunk);
-            self.0 = (self.0.rotate_left(5) ^ u32::from_le_bytes(word) as u64).wrapping_mul(0x517c_c1b7_2722_0a95);
+            self.0 = (self.0.rotate_left(5) ^ u32::from_le_bytes(word) as u64)
+                .wrapping_mul(0x517c_c1b7_2722_0a95);
         }
     }
 
@@ -233,7 +286,10 @@ impl Hasher for CellHasher {
 
 impl CellGrid {
     fn new(points: &[Point3], cell: f32, flat: bool) -> Self {
-        let keys: Vec<[i32; 3]> = points.iter().map(|p| p.map(|v| (v / cell).floor() as i32)).collect();
+        let keys: Vec<[i32; 3]> = points
+            .iter()
+            .map(|p| p.map(|v| (v / cell).floor() as i32))
+            .collect();
         let mut order: Vec<u32> = (0..points.len() as u32).collect();
         order.sort_unstable_by_key(|&i| (keys[i as usize], i));
         let mut cells = Vec::new();
@@ -248,7 +304,12 @@ impl CellGrid {
             start = end;
         }
         let ranges = cells.iter().map(|&(key, a, b)| (key, (a, b))).collect();
-        Self { flat, order, cells, ranges }
+        Self {
+            flat,
+            order,
+            cells,
+            ranges,
+        }
     }
 
     /// Calls `visit(i, j)` for every point `i` and every point `j` in the
@@ -269,7 +330,9 @@ impl CellGrid {
             }
             for &i in &self.order[a as usize..b as usize] {
                 for &(ra, rb) in &around {
-                    self.order[ra as usize..rb as usize].iter().for_each(|&j| visit(i as usize, j as usize));
+                    self.order[ra as usize..rb as usize]
+                        .iter()
+                        .for_each(|&j| visit(i as usize, j as usize));
                 }
             }
         }
@@ -283,13 +346,21 @@ fn convex_hull(mut points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
     if points.len() < 3 {
         return points;
     }
-    let cross = |o: [f64; 2], a: [f64; 2], b: [f64; 2]| (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
+    let cross = |o: [f64; 2], a: [f64; 2], b: [f64; 2]| {
+        (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+    };
     let mut hull: Vec<[f64; 2]> = Vec::with_capacity(2 * points.len());
     for pass in 0..2 {
         let start = hull.len();
-        let ordered: Box<dyn Iterator<Item = &[f64; 2]>> = if pass == 0 { Box::new(points.iter()) } else { Box::new(points.iter().rev()) };
+        let ordered: Box<dyn Iterator<Item = &[f64; 2]>> = if pass == 0 {
+            Box::new(points.iter())
+        } else {
+            Box::new(points.iter().rev())
+        };
         for &p in ordered {
-            while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0 {
+            while hull.len() >= start + 2
+                && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0
+            {
                 hull.pop();
             }
             hull.push(p);
@@ -333,7 +404,9 @@ struct UnionFind {
 
 impl UnionFind {
     fn new(n: usize) -> Self {
-        Self { parent: (0..n).collect() }
+        Self {
+            parent: (0..n).collect(),
+        }
     }
 
     fn find(&mut self, mut i: usize) -> usize {
@@ -359,7 +432,13 @@ mod tests {
 
     /// A grid of points on the plane z = `depth`, `spacing` apart, over
     /// [x0, x1) × [y0, y1), skipping points for which `hole` is true.
-    fn plane(depth: f32, spacing: f32, (x0, x1): (f32, f32), (y0, y1): (f32, f32), hole: impl Fn(f32, f32) -> bool) -> Vec<Point3> {
+    fn plane(
+        depth: f32,
+        spacing: f32,
+        (x0, x1): (f32, f32),
+        (y0, y1): (f32, f32),
+        hole: impl Fn(f32, f32) -> bool,
+    ) -> Vec<Point3> {
         let mut points = Vec::new();
         let mut y = y0;
         while y < y1 {
@@ -380,22 +459,47 @@ mod tests {
         // A 10 cm square object at 0.6 m; the detector's mask spilled onto a
         // ring of the wall 5 cm behind it; flying pixels hang between them.
         let object = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |_, _| false);
-        let ring = plane(0.65, 0.002, (-0.06, 0.06), (-0.06, 0.06), |x, y| x.abs() < 0.052 && y.abs() < 0.052);
+        let ring = plane(0.65, 0.002, (-0.06, 0.06), (-0.06, 0.06), |x, y| {
+            x.abs() < 0.052 && y.abs() < 0.052
+        });
         // Mixed pixels along the top edge: each at a random depth between the two surfaces.
         let mut rng = crate::rng::SplitMix64::new(7);
-        let flying: Vec<Point3> = (0..50).map(|i| [-0.05 + 0.002 * i as f32, 0.051, 0.6 + 0.05 * rng.next_f64() as f32]).collect();
+        let flying: Vec<Point3> = (0..50)
+            .map(|i| {
+                [
+                    -0.05 + 0.002 * i as f32,
+                    0.051,
+                    0.6 + 0.05 * rng.next_f64() as f32,
+                ]
+            })
+            .collect();
         let cloud: Vec<Point3> = object.iter().chain(&ring).chain(&flying).copied().collect();
         let keep = segment(&cloud, 0.14, &SegmentSettings::default()).keep;
         let kept_object = keep[..object.len()].iter().filter(|&&k| k).count();
-        assert!(kept_object as f64 >= 0.99 * object.len() as f64, "{kept_object} of {} object points", object.len());
-        assert!(keep[object.len()..object.len() + ring.len()].iter().all(|&k| !k), "ring points kept");
-        let stray = flying.iter().zip(&keep[object.len() + ring.len()..]).filter(|(p, &k)| k && p[2] > 0.61).count();
+        assert!(
+            kept_object as f64 >= 0.99 * object.len() as f64,
+            "{kept_object} of {} object points",
+            object.len()
+        );
+        assert!(
+            keep[object.len()..object.len() + ring.len()]
+                .iter()
+                .all(|&k| !k),
+            "ring points kept"
+        );
+        let stray = flying
+            .iter()
+            .zip(&keep[object.len() + ring.len()..])
+            .filter(|(p, &k)| k && p[2] > 0.61)
+            .count();
         assert_eq!(stray, 0, "flying pixels more than 1 cm off the object kept");
     }
 
     #[test]
     fn an_object_cut_in_two_by_an_occluder_keeps_both_parts() {
-        let object = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |x, _| x.abs() < 0.01);
+        let object = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |x, _| {
+            x.abs() < 0.01
+        });
         let keep = segment(&object, 0.14, &SegmentSettings::default()).keep;
         assert!(keep.iter().all(|&k| k));
     }
@@ -403,11 +507,18 @@ mod tests {
     #[test]
     fn a_recessed_part_inside_the_silhouette_is_kept() {
         // A can seen from above: a 1.5 cm rim ring at 0.6 m around a lid 1 cm deeper.
-        let rim = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |x, y| x.abs() < 0.035 && y.abs() < 0.035);
+        let rim = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |x, y| {
+            x.abs() < 0.035 && y.abs() < 0.035
+        });
         let lid = plane(0.61, 0.002, (-0.034, 0.034), (-0.034, 0.034), |_, _| false);
         let cloud: Vec<Point3> = rim.iter().chain(&lid).copied().collect();
         let keep = segment(&cloud, 0.14, &SegmentSettings::default()).keep;
-        assert!(keep.iter().all(|&k| k), "{} of {} kept", keep.iter().filter(|&&k| k).count(), keep.len());
+        assert!(
+            keep.iter().all(|&k| k),
+            "{} of {} kept",
+            keep.iter().filter(|&&k| k).count(),
+            keep.len()
+        );
     }
 
     #[test]
@@ -416,13 +527,17 @@ mod tests {
         let far = plane(0.6, 0.002, (0.3, 0.34), (0.0, 0.04), |_, _| false);
         let cloud: Vec<Point3> = object.iter().chain(&far).copied().collect();
         let keep = segment(&cloud, 0.14, &SegmentSettings::default()).keep;
-        assert!(keep[..object.len()].iter().all(|&k| k) && keep[object.len()..].iter().all(|&k| !k));
+        assert!(
+            keep[..object.len()].iter().all(|&k| k) && keep[object.len()..].iter().all(|&k| !k)
+        );
     }
 
     #[test]
     fn tiny_clouds_are_kept_whole() {
         let cloud = vec![[0.0f32, 0.0, 0.5]; 10];
-        assert_eq!(segment(&cloud, 0.1, &SegmentSettings::default()).keep, vec![true; 10]);
+        assert_eq!(
+            segment(&cloud, 0.1, &SegmentSettings::default()).keep,
+            vec![true; 10]
+        );
     }
 }
-

@@ -30,7 +30,11 @@ pub fn fibonacci_directions(n: usize) -> Vec<Vector3<f64>> {
 /// z axis), so every direction gets one fixed, documented rotation.
 pub fn view_rotation(direction: &Vector3<f64>) -> Rotation {
     let z_axis = -direction.normalize();
-    let up = if z_axis.z.abs() < 0.99 { Vector3::z() } else { Vector3::y() };
+    let up = if z_axis.z.abs() < 0.99 {
+        Vector3::z()
+    } else {
+        Vector3::y()
+    };
     let y_axis = -(up - z_axis * up.dot(&z_axis)).normalize();
     let x_axis = y_axis.cross(&z_axis);
     Matrix3::from_rows(&[x_axis.transpose(), y_axis.transpose(), z_axis.transpose()])

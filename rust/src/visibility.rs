@@ -85,8 +85,16 @@ impl Grid {
         // usize::MAX and wrap to an empty grid on the `+ 1`.
         let width = ((max_x - min_x) / cell_size).min(4095.0) as usize + 1;
         let height = ((max_y - min_y) / cell_size).min(4095.0) as usize + 1;
-        let cell_size = cell_size.max((max_x - min_x) / 4095.0).max((max_y - min_y) / 4095.0);
-        Some(Self { min_x, min_y, cell_size, width, height })
+        let cell_size = cell_size
+            .max((max_x - min_x) / 4095.0)
+            .max((max_y - min_y) / 4095.0);
+        Some(Self {
+            min_x,
+            min_y,
+            cell_size,
+            width,
+            height,
+        })
     }
 
     fn cell(&self, p: &Point3) -> (usize, usize) {
@@ -146,7 +154,10 @@ mod tests {
         let (points, normals) = plate(20, 0.0, 50.0);
         for spacing in [1e-30, f32::MIN_POSITIVE, 1e-45] {
             let mask = visible_mask(&points, &normals, spacing);
-            assert!(mask.iter().all(|&v| v), "a lone plate is fully visible (spacing {spacing})");
+            assert!(
+                mask.iter().all(|&v| v),
+                "a lone plate is fully visible (spacing {spacing})"
+            );
         }
     }
 

@@ -51,7 +51,7 @@ class PoseMethod(Protocol):
 
     name: str
 
-    def prepare(self, mesh: "trimesh.Trimesh") -> None:
+    def prepare(self, mesh: trimesh.Trimesh) -> None:
         """Per-object preparation (model sampling, features, training).
         ``mesh`` is in file units (metres, or millimetres detected by size)."""
         ...
@@ -119,14 +119,14 @@ class Open3DBaseline:
         self._model: StandardModel | None = None
         _open3d(threads)  # import now, so prepare() times only the preparation
 
-    def prepare(self, mesh: "trimesh.Trimesh") -> None:
+    def prepare(self, mesh: trimesh.Trimesh) -> None:
         """Sample the model surface, downsample it to the voxel size, and
         compute its FPFH features (model frame = original mesh frame, metres)."""
         o3d = _open3d(self.threads)
         model = edgepose.load_model(mesh, n_points=self.model_points)
         self._model = model
         self.voxel = model.diameter * self.voxel_ratio
-        full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_mesh_frame_points(model)))
+        full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.mesh_points))
         full.normals = o3d.utility.Vector3dVector(model.normals.astype(np.float64))
         self._model_full = full
         self._model_down = _normalised(full.voxel_down_sample(self.voxel))
@@ -243,7 +243,7 @@ class OpenCVPPFBaseline:
         self._detector: Any = None
         _opencv(threads)  # import now, so prepare() times only the training
 
-    def prepare(self, mesh: "trimesh.Trimesh") -> None:
+    def prepare(self, mesh: trimesh.Trimesh) -> None:
         """Train the PPF hash table on the centred standard model."""
         cv2 = _opencv(self.threads)
         model = edgepose.load_model(mesh, n_points=self.model_points)
@@ -303,7 +303,7 @@ class EdgePoseMethod:
         self.last = LastRun()
         self._codebook: Any = None
 
-    def prepare(self, mesh: "trimesh.Trimesh") -> None:
+    def prepare(self, mesh: trimesh.Trimesh) -> None:
         self._codebook = edgepose.build_codebook(mesh)  # type: ignore[attr-defined]
 
     def estimate(self, cloud: np.ndarray) -> np.ndarray:
@@ -330,11 +330,6 @@ def _clean_cloud(cloud: np.ndarray) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != 3:
         raise InvalidCloudError(f"cloud must have shape (N, 3), got {points.shape}")
     return np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
-
-
-def _mesh_frame_points(model: StandardModel) -> np.ndarray:
-    """Model points in the original mesh frame (metres), float64."""
-    return model.points.astype(np.float64) + model.centre
 
 
 def _normalised(cloud: Any) -> Any:

@@ -10,9 +10,10 @@ precedes the timed ones.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,7 +30,7 @@ class BenchObject:
     """One benchmark object: its mesh, metric points and rendered views."""
 
     name: str
-    mesh: "trimesh.Trimesh"
+    mesh: trimesh.Trimesh
     points: np.ndarray
     """(N, 3) float64 model points in the original mesh frame, metres (for the metrics)."""
     diameter: float
@@ -85,7 +86,7 @@ class Summary:
 
 
 def load_object(
-    mesh: "str | Path | trimesh.Trimesh",
+    mesh: str | Path | trimesh.Trimesh,
     seeds: list[int],
     *,
     name: str | None = None,
@@ -109,10 +110,11 @@ def load_object(
     from edgepose.model import load_model, read_mesh
 
     stress = STRESS_LEVELS[stress] if isinstance(stress, str) else stress
-    if not isinstance(mesh, trimesh.Trimesh):
+    if isinstance(mesh, trimesh.Trimesh):
+        name = name or "object"
+    else:
         name = name or Path(mesh).stem
         mesh = read_mesh(mesh, scale=None)
-    name = name or "object"
     model = load_model(mesh)
     if stress.background:
         if occluders:
@@ -121,14 +123,24 @@ def load_object(
         clouds, poses = [v.cloud for v in scenes], [v.T_cam_obj for v in scenes]
         visible, spill = [v.visible_fraction for v in scenes], [v.spill_fraction for v in scenes]
     else:
-        views = [render_view(mesh, seed=s, occluders=occluders, distance=stress.distance, depth_noise=stress.depth_noise,
-                             quantization=stress.quantization, dropout=stress.dropout) for s in seeds]  # fmt: skip
+        views = [
+            render_view(
+                mesh,
+                seed=s,
+                occluders=occluders,
+                distance=stress.distance,
+                depth_noise=stress.depth_noise,
+                quantization=stress.quantization,
+                dropout=stress.dropout,
+            )
+            for s in seeds
+        ]
         clouds, poses = [v.cloud for v in views], [v.T_cam_obj for v in views]
         visible, spill = [float("nan") if occluders else 1.0] * len(seeds), [0.0] * len(seeds)
     return BenchObject(
         name=name,
         mesh=mesh,
-        points=model.points.astype(np.float64) + model.centre,
+        points=model.mesh_points,
         diameter=model.diameter,
         symmetric=name in YCB_SYMMETRIC if symmetric is None else symmetric,
         seeds=list(seeds),

@@ -8,9 +8,9 @@ memory, :class:`BopRow` keeps t in metres like the rest of edgepose.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -51,8 +51,7 @@ def write_bop_csv(path: str | os.PathLike, rows: Iterable[BopRow]) -> None:
         R = " ".join(repr(float(x)) for x in row.R.ravel())
         t = " ".join(repr(float(x)) for x in row.t * 1000.0)
         lines.append(
-            f"{int(row.scene_id)},{int(row.im_id)},{int(row.obj_id)},"
-            f"{float(row.score)!r},{R},{t},{float(row.time)!r}"
+            f"{int(row.scene_id)},{int(row.im_id)},{int(row.obj_id)},{float(row.score)!r},{R},{t},{float(row.time)!r}"
         )
     Path(path).write_text("\n".join(lines) + "\n")
 

@@ -71,7 +71,7 @@ def random_pose(
     rng: np.random.Generator,
     camera: Camera = LINEMOD_CAMERA,
     distance: tuple[float, float] = (0.45, 0.9),
-    centre: np.ndarray = (0.0, 0.0, 0.0),
+    centre: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> np.ndarray:
     """Random ``T_cam_obj`` (4, 4): uniformly random rotation, and the object
     point ``centre`` (object frame, metres; e.g. the bounding-box centre) at a

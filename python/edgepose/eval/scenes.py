@@ -10,8 +10,9 @@ metres; the camera frame is OpenCV's (x right, y down, z forward); poses are
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,7 +44,8 @@ class Stress:
     erode_px: int = 0
     """Pixels (Euclidean disk radius) by which the detector mask shrinks into the object."""
     cut: float = 0.0
-    """Fraction (0–1) of the object's visible pixels the detector misses, cut off by a half-plane of random direction."""
+    """Fraction (0–1) of the object's visible pixels the detector misses, cut off by a
+    half-plane of random direction."""
     flying: float = 0.0
     """Fraction (0–1) of the spilled pixels that are mixed ("flying") pixels, with a depth between the
     object's and the background's."""
@@ -67,8 +69,11 @@ class Stress:
     def __post_init__(self) -> None:
         if self.noise not in ("constant", "kinect"):
             raise ValueError(f"unknown noise model {self.noise!r}; use 'constant' or 'kinect'")
-        plain = (self.visible >= 1.0 and not (self.spill_px or self.erode_px or self.cut or self.flying
-                 or self.lateral_px) and self.noise == "constant")  # fmt: skip
+        plain = (
+            self.visible >= 1.0
+            and not (self.spill_px or self.erode_px or self.cut or self.flying or self.lateral_px)
+            and self.noise == "constant"
+        )
         if not (self.background or plain):
             raise ValueError("background=False renders render_view's plain view: no other stress allowed")
 
@@ -77,7 +82,9 @@ class Stress:
 STRESS_LEVELS: dict[str, Stress] = {
     s.name: s
     for s in [
-        Stress("clean", "fully visible, perfect mask, 1 mm noise, no background (render_view's view)", background=False),
+        Stress(
+            "clean", "fully visible, perfect mask, 1 mm noise, no background (render_view's view)", background=False
+        ),
         Stress("visible70", "solid occluder in front, 70 % of the object visible", visible=0.7),
         Stress("visible40", "solid occluder in front, 40 % of the object visible", visible=0.4),
         Stress("visible20", "solid occluder in front, 20 % of the object visible", visible=0.2),
@@ -86,10 +93,16 @@ STRESS_LEVELS: dict[str, Stress] = {
         Stress("spill8", "mask grown 8 px over the background; 1/4 of spilled pixels mixed", spill_px=8, flying=0.25),
         Stress("eroded3", "mask eroded by 3 px", erode_px=3),
         Stress("partial", "detector misses a half-plane cut of 25 % of the object's pixels", cut=0.25),
-        Stress("noise_far", "object 1.0-1.5 m away, Kinect noise 0.0012 + 0.0019 (z-0.4)^2 m, 0.8 px lateral "
-               "jitter", noise="kinect", lateral_px=0.8, distance=(1.0, 1.5)),  # fmt: skip
-        Stress("occluded30_spill5", "70 % visible and mask grown 5 px (1/4 mixed)", visible=0.7, spill_px=5,
-               flying=0.25),  # fmt: skip
+        Stress(
+            "noise_far",
+            "object 1.0-1.5 m away, Kinect noise 0.0012 + 0.0019 (z-0.4)^2 m, 0.8 px lateral jitter",
+            noise="kinect",
+            lateral_px=0.8,
+            distance=(1.0, 1.5),
+        ),
+        Stress(
+            "occluded30_spill5", "70 % visible and mask grown 5 px (1/4 mixed)", visible=0.7, spill_px=5, flying=0.25
+        ),
     ]
 }
 
@@ -253,10 +266,19 @@ def render_scene(
     on_object = int((mask & visible & measured).sum())
     spilled = int((mask & ~visible & measured).sum())
     return SceneView(
-        cloud=cloud, depth=depth, K=camera.K, mask=mask, true_mask=visible, T_cam_obj=T_cam_obj,
-        visible_fraction=visible_fraction, spill_fraction=spilled / max(on_object, 1), ideal_depth=ideal,
-        flying_mask=flying & measured, stress=stress.name, camera=camera,
-    )  # fmt: skip
+        cloud=cloud,
+        depth=depth,
+        K=camera.K,
+        mask=mask,
+        true_mask=visible,
+        T_cam_obj=T_cam_obj,
+        visible_fraction=visible_fraction,
+        spill_fraction=spilled / max(on_object, 1),
+        ideal_depth=ideal,
+        flying_mask=flying & measured,
+        stress=stress.name,
+        camera=camera,
+    )
 
 
 def noise_sigma(stress: Stress, z: np.ndarray) -> np.ndarray:
@@ -267,16 +289,38 @@ def noise_sigma(stress: Stress, z: np.ndarray) -> np.ndarray:
 
 def _plain_view(mesh, stress: Stress, seed: int, T_cam_obj, camera: Camera) -> SceneView:
     """``render_view``'s view as a SceneView (the ``clean`` level: identical clouds)."""
-    view = render_view(mesh, T_cam_obj=T_cam_obj, seed=seed, camera=camera, distance=stress.distance,
-                       depth_noise=stress.depth_noise, quantization=stress.quantization, dropout=stress.dropout)  # fmt: skip
-    alone = np.isfinite(rasterize_depth(np.asarray(mesh.vertices, dtype=np.float64) @ view.T_cam_obj[:3, :3].T
-                                        + view.T_cam_obj[:3, 3], np.asarray(mesh.faces), camera))  # fmt: skip
+    view = render_view(
+        mesh,
+        T_cam_obj=T_cam_obj,
+        seed=seed,
+        camera=camera,
+        distance=stress.distance,
+        depth_noise=stress.depth_noise,
+        quantization=stress.quantization,
+        dropout=stress.dropout,
+    )
+    alone = np.isfinite(
+        rasterize_depth(
+            np.asarray(mesh.vertices, dtype=np.float64) @ view.T_cam_obj[:3, :3].T + view.T_cam_obj[:3, 3],
+            np.asarray(mesh.faces),
+            camera,
+        )
+    )
     ideal = np.where(alone, view.depth, np.inf).astype(np.float32)
     return SceneView(
-        cloud=view.cloud, depth=view.depth, K=camera.K, mask=view.mask, true_mask=alone,
-        T_cam_obj=view.T_cam_obj, visible_fraction=1.0, spill_fraction=0.0, ideal_depth=ideal,
-        flying_mask=np.zeros_like(alone), stress=stress.name, camera=camera,
-    )  # fmt: skip
+        cloud=view.cloud,
+        depth=view.depth,
+        K=camera.K,
+        mask=view.mask,
+        true_mask=alone,
+        T_cam_obj=view.T_cam_obj,
+        visible_fraction=1.0,
+        spill_fraction=0.0,
+        ideal_depth=ideal,
+        flying_mask=np.zeros_like(alone),
+        stress=stress.name,
+        camera=camera,
+    )
 
 
 def _occlude(target, z_obj, visible, centre, camera, rng, meshes) -> np.ndarray:
@@ -302,7 +346,9 @@ def _occlude(target, z_obj, visible, centre, camera, rng, meshes) -> np.ndarray:
     if kind == 0:  # a box (a panel, a carton)
         thickness = rng.uniform(0.02, 0.08)
         z_occ = max(front - gap - thickness / 2, 0.15)
-        occluder = trimesh.creation.box(extents=[width_px * z_occ / camera.fx, height_px * z_occ / camera.fy, thickness])
+        occluder = trimesh.creation.box(
+            extents=[width_px * z_occ / camera.fx, height_px * z_occ / camera.fy, thickness]
+        )
     elif kind == 1:  # a cylinder (a bottle, a pole) across the slide direction
         a = width_px / camera.fx
         z_occ = max((front - gap) / (1 + a / 2), 0.15)
@@ -346,8 +392,14 @@ def _occlude(target, z_obj, visible, centre, camera, rng, meshes) -> np.ndarray:
 
 def _crop(camera: Camera, r0: int, r1: int, c0: int, c1: int, step: int = 1) -> Camera:
     """The camera seeing rows r0:r1:step, columns c0:c1:step of ``camera``'s image."""
-    return Camera(camera.fx / step, camera.fy / step, (camera.cx - c0) / step, (camera.cy - r0) / step,
-                  -(-(c1 - c0) // step), -(-(r1 - r0) // step))  # fmt: skip
+    return Camera(
+        camera.fx / step,
+        camera.fy / step,
+        (camera.cx - c0) / step,
+        (camera.cy - r0) / step,
+        -(-(c1 - c0) // step),
+        -(-(r1 - r0) // step),
+    )
 
 
 def _primitive(rng: np.random.Generator, meshes: list) -> trimesh.Trimesh:
@@ -369,7 +421,9 @@ def _spread(z: np.ndarray, steps: int) -> np.ndarray:
     out, (h, w) = z.copy(), z.shape
     for _ in range(steps):
         padded = np.pad(out, 1, constant_values=np.inf)
-        best = np.min([padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+        best = np.min(
+            [padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0
+        )
         out = np.where(np.isfinite(out), out, best)
     return out
 
