@@ -20,9 +20,10 @@ install: $(BIN)/maturin
 
 # Everything the tests and training need too: they cover training and export,
 # so the `export` extra (torch, CPU use only; a large download the first time),
-# and catalogue builds on a local Ray instance, so the `dist` extra (ray).
+# and catalogue builds on a local Ray instance, so the `dist` extra (ray); the
+# `test-hooks` feature adds the core's deliberate-panic hook the tests call.
 build: $(BIN)/maturin
-	$(BIN)/maturin develop --release --quiet --extras test,export,dist,lint
+	$(BIN)/maturin develop --release --quiet --extras test,export,dist,lint --features test-hooks
 
 # ruff (format and lint) over the Python trees, mypy on the package, rustfmt
 # and clippy with warnings as errors. CI runs it before the tests.
@@ -31,7 +32,7 @@ lint: build
 	$(BIN)/ruff check python benches export tests
 	$(BIN)/mypy
 	cargo fmt --all --check
-	cargo clippy --workspace --all-targets --features python -- -D warnings
+	cargo clippy --workspace --all-targets --features test-hooks -- -D warnings
 
 demo: install
 	$(BIN)/edgepose demo

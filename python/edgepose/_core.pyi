@@ -5,14 +5,6 @@ import numpy.typing as npt
 
 __version__: str
 
-_ModelTuple = tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float64], float, float, float]
-
-def standard_model_from_mesh(
-    vertices: npt.NDArray[np.float64], faces: npt.NDArray[np.uint32], n_points: int, seed: int
-) -> _ModelTuple: ...
-def standard_model_from_points(
-    points: npt.NDArray[np.float32], normals: npt.NDArray[np.float32], n_points: int
-) -> _ModelTuple: ...
 def fibonacci_viewpoints(n: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
 def view_rotation(direction: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 def farthest_point_sample(points: npt.NDArray[np.float32], m: int) -> npt.NDArray[np.uint32]: ...
@@ -20,12 +12,7 @@ def visible_mask(
     points: npt.NDArray[np.float32], normals: npt.NDArray[np.float32], spacing: float
 ) -> npt.NDArray[np.bool_]: ...
 def compute_maps(
-    points: npt.NDArray[np.float32],
-    normals: npt.NDArray[np.float32],
-    scale: float,
-    spacing: float,
-    rotations: npt.NDArray[np.float64],
-    m: int,
+    model: StandardModel, rotations: npt.NDArray[np.float64], m: int
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64], npt.NDArray[np.uint32]]: ...
 def normalize_to_map(
     points: npt.NDArray[np.float32], scale: float, m: int
@@ -43,8 +30,59 @@ def segment_object(
     max_component_offset: float = 0.8,
 ) -> tuple[npt.NDArray[np.bool_], float]: ...
 
+class StandardModel:
+    def __init__(
+        self,
+        points: npt.NDArray[np.float32],
+        normals: npt.NDArray[np.float32],
+        centre: npt.NDArray[np.float64],
+        scale: float,
+        diameter: float,
+        spacing: float,
+    ) -> None: ...
+    @staticmethod
+    def from_mesh(
+        vertices: npt.NDArray[np.float64],
+        faces: npt.NDArray[np.uint32],
+        n_points: int,
+        seed: int,
+        source: str = "mesh",
+    ) -> StandardModel: ...
+    @staticmethod
+    def from_points(
+        points: npt.NDArray[np.float32], normals: npt.NDArray[np.float32], n_points: int, source: str = "points"
+    ) -> StandardModel: ...
+    def __len__(self) -> int: ...
+    @property
+    def points(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def normals(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def centre(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def scale(self) -> float: ...
+    @property
+    def diameter(self) -> float: ...
+    @property
+    def spacing(self) -> float: ...
+
+class IcpResults:
+    def __len__(self) -> int: ...
+    @property
+    def rotations(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def translations(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def iterations(self) -> npt.NDArray[np.uint32]: ...
+    @property
+    def converged(self) -> npt.NDArray[np.bool_]: ...
+    @property
+    def inliers(self) -> npt.NDArray[np.uint32]: ...
+    @property
+    def rmse(self) -> npt.NDArray[np.float64]: ...
+
 class ModelIndex:
-    def __init__(self, points: npt.NDArray[np.float32], normals: npt.NDArray[np.float32]) -> None: ...
+    def __init__(self, model: StandardModel) -> None: ...
     def __len__(self) -> int: ...
     def verify(
         self,
@@ -78,11 +116,7 @@ class ModelIndex:
         translations: npt.NDArray[np.float64],
         max_iterations: int,
         max_distance: float,
-    ) -> tuple[
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.uint32],
-        npt.NDArray[np.bool_],
-        npt.NDArray[np.uint32],
-        npt.NDArray[np.float64],
-    ]: ...
+    ) -> IcpResults: ...
+
+# Built with the `test-hooks` cargo feature only (`make build`; never in the wheel).
+def _panic_for_tests(message: str, where_: str) -> None: ...

@@ -75,7 +75,7 @@ class Codebook:
     index: _core.ModelIndex = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "index", _core.ModelIndex(self.model.points, self.model.normals))
+        object.__setattr__(self, "index", _core.ModelIndex(self.model.core))
 
     def __len__(self) -> int:
         return len(self.codes)

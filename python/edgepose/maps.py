@@ -37,12 +37,7 @@ def compute_maps(
     if points_per_map < 1:
         raise ValueError(f"points_per_map must be positive, got {points_per_map}")
     points, centroids, visible = _core.compute_maps(
-        model.points,
-        model.normals,
-        model.scale,
-        model.spacing,
-        np.ascontiguousarray(viewpoints.rotations, dtype=np.float64),
-        points_per_map,
+        model.core, np.ascontiguousarray(viewpoints.rotations, dtype=np.float64), points_per_map
     )
     return Maps(points, centroids, visible)
 

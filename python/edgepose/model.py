@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Union
 
@@ -60,6 +60,25 @@ class StandardModel:
     """Largest distance between two model points, metres."""
     spacing: float
     """Mean nearest-neighbour distance between model points, metres."""
+    core: _core.StandardModel = field(init=False, repr=False, compare=False)
+    """The same model in the Rust core, built once; passed to
+    :func:`edgepose.compute_maps` and the codebook's ``ModelIndex``."""
+
+    def __post_init__(self) -> None:
+        core = _core.StandardModel(
+            np.ascontiguousarray(self.points, dtype=np.float32),
+            np.ascontiguousarray(self.normals, dtype=np.float32),
+            np.ascontiguousarray(self.centre, dtype=np.float64),
+            float(self.scale),
+            float(self.diameter),
+            float(self.spacing),
+        )
+        object.__setattr__(self, "core", core)
+
+    @classmethod
+    def from_core(cls, core: _core.StandardModel) -> StandardModel:
+        """The model the core built (from a mesh or from points)."""
+        return cls(core.points, core.normals, core.centre, core.scale, core.diameter, core.spacing)
 
     @property
     def mesh_points(self) -> np.ndarray:
@@ -117,11 +136,8 @@ def load_model(
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InvalidModelError(f"{_name(source)}: faces refer to vertices outside 0..{len(vertices) - 1}")
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
-    try:
-        fields = _core.standard_model_from_mesh(vertices, faces, n_points, seed)
-    except ValueError as e:
-        raise InvalidModelError(f"{_name(source)}: {e}") from None
-    return _checked(StandardModel(*fields), _name(source))
+    core = _core.StandardModel.from_mesh(vertices, faces, n_points, seed, source=_name(source))
+    return _checked(StandardModel.from_core(core), _name(source))
 
 
 def model_from_points(
@@ -137,11 +153,8 @@ def model_from_points(
     normals = _as_triples(normals, "normals")
     if len(points) and np.isfinite(points).all():
         _check_size(float(np.linalg.norm(np.ptp(points, axis=0))), 1.0, "points")
-    try:
-        fields = _core.standard_model_from_points(points, normals, n_points)
-    except ValueError as e:
-        raise InvalidModelError(str(e)) from None
-    return _checked(StandardModel(*fields), "points")
+    core = _core.StandardModel.from_points(points, normals, n_points, source="points")
+    return _checked(StandardModel.from_core(core), "points")
 
 
 def _check_size(diameter: float, scale: float, name: str) -> None:

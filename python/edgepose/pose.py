@@ -226,9 +226,10 @@ def refine_hypotheses(
         rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
     )
     max_distance = settings.icp_max_distance * d
-    hyp_R, hyp_t, _, _, inliers, rmse = codebook.index.refine(
+    icp = codebook.index.refine(
         coarse, rotations[starts], translations[starts], settings.hypothesis_iterations, max_distance
     )
+    hyp_R, hyp_t, inliers, rmse = icp.rotations, icp.translations, icp.inliers, icp.rmse
     usable = (
         np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
     )
@@ -244,16 +245,17 @@ def refine_hypotheses(
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
     best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
     if settings.icp_iterations > 0:
-        fine_R, fine_t, _, _, fine_inliers, fine_rmse = codebook.index.refine(
+        fine_icp = codebook.index.refine(
             _subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
             hyp_R[pick : pick + 1],
             hyp_t[pick : pick + 1],
             settings.icp_iterations,
             max_distance,
         )
+        fine_R, fine_t = fine_icp.rotations, fine_icp.translations
         if (
-            fine_inliers[0] >= settings.min_icp_inliers
-            and np.isfinite(fine_rmse[0])
+            fine_icp.inliers[0] >= settings.min_icp_inliers
+            and np.isfinite(fine_icp.rmse[0])
             and near_the_cloud(query, codebook, fine_t, settings)[0]
         ):
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)

@@ -123,7 +123,7 @@ fn bench_search(c: &mut Criterion) {
         })
         .collect();
     let scene: Vec<Point3> = seen.iter().chain(&ring).copied().collect();
-    group.bench_function(&format!("segment_{}_points", scene.len()), |b| {
+    group.bench_function(format!("segment_{}_points", scene.len()), |b| {
         b.iter(|| segment(&scene, 0.12, &SegmentSettings::default()))
     });
     let spacing = segment(&scene, 0.12, &SegmentSettings::default()).spacing;

@@ -6,6 +6,7 @@
 
 pub mod error;
 pub mod grouping;
+pub mod index;
 pub mod maps;
 pub mod model;
 pub mod refine;
@@ -25,9 +26,10 @@ pub type Point3 = [f32; 3];
 
 pub use error::GeometryError;
 pub use grouping::{map_neighbours, neighbours_of_maps};
+pub use index::{ModelIndex, Pose};
 pub use maps::{compute_maps, normalize_to_map, view_map, Maps, ViewMap};
 pub use model::StandardModel;
-pub use refine::{IcpResult, ModelIndex, Pose};
+pub use refine::IcpResult;
 pub use sampling::farthest_point_sample;
 pub use scoring::{score_poses, DepthGrid, PoseScore, ScoreSettings};
 pub use search::{top_k, verify};

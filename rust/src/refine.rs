@@ -2,45 +2,18 @@
 //! viewpoint search. Works in the model frame, where the model's kd-tree is
 //! built once per codebook.
 
-use std::num::NonZero;
+use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
 
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
-use nalgebra::{Matrix3, Matrix6, Rotation3, Vector3, Vector6};
-
+use crate::index::{ModelIndex, Pose};
 use crate::Point3;
 
 /// ICP has converged when an update's rotation (radians) and translation
 /// (metres) together move less than this: 10 µm, far below depth noise.
 pub const CONVERGED: f64 = 1e-5;
 
-/// The model's points and normals with a kd-tree over the points (model
-/// frame, metres). Immutable, so many threads may query it at once.
-pub struct ModelIndex {
-    tree: ImmutableKdTree<f32, 3>,
-    points: Vec<Point3>,
-    normals: Vec<Point3>,
-}
-
-/// A rigid transform `p_cam = rotation · p_model + translation` (metres).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Pose {
-    pub rotation: Matrix3<f64>,
-    pub translation: Vector3<f64>,
-}
-
-impl Pose {
-    pub fn inverse(&self) -> Pose {
-        let rt = self.rotation.transpose();
-        Pose {
-            rotation: rt,
-            translation: -(rt * self.translation),
-        }
-    }
-
-    pub fn apply(&self, p: &Point3) -> Vector3<f64> {
-        self.rotation * Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64) + self.translation
-    }
-}
+/// One ICP correspondence, model frame: the moved cloud point, its nearest
+/// model point, that point's normal, and their distance (metres).
+type Pair = (Vector3<f64>, Vector3<f64>, Vector3<f64>, f64);
 
 #[derive(Clone, Copy, Debug)]
 pub struct IcpResult {
@@ -56,52 +29,6 @@ pub struct IcpResult {
 }
 
 impl ModelIndex {
-    pub fn new(points: Vec<Point3>, normals: Vec<Point3>) -> Self {
-        assert_eq!(points.len(), normals.len(), "one normal per point");
-        let tree = ImmutableKdTree::new_from_slice(&points);
-        Self {
-            tree,
-            points,
-            normals,
-        }
-    }
-
-    pub fn len(&self) -> usize {
-        self.points.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.points.is_empty()
-    }
-
-    /// The model's points, model frame, metres.
-    pub fn points(&self) -> &[Point3] {
-        &self.points
-    }
-
-    /// The model's unit outward normals, one per point.
-    pub fn normals(&self) -> &[Point3] {
-        &self.normals
-    }
-
-    /// Index and squared distance of the model point nearest to `p` (model frame).
-    pub fn nearest(&self, p: &[f32; 3]) -> (usize, f32) {
-        let nn = self.tree.nearest_one::<SquaredEuclidean>(p);
-        (nn.item as usize, nn.distance)
-    }
-
-    /// Indices of the `k` nearest model points to `p`, nearest first.
-    pub fn nearest_k(&self, p: &[f32; 3], k: usize) -> Vec<usize> {
-        let Some(k) = NonZero::new(k) else {
-            return Vec::new();
-        };
-        self.tree
-            .nearest_n::<SquaredEuclidean>(p, k)
-            .into_iter()
-            .map(|nn| nn.item as usize)
-            .collect()
-    }
-
     /// [`refine`](Self::refine) from each of several `starts`: one result per
     /// start, in order. Refining a few distinct hypotheses and keeping the
     /// best fit resolves near-symmetric objects whose turned-over pose
@@ -141,8 +68,7 @@ impl ModelIndex {
             inliers: 0,
             rmse: f64::NAN,
         };
-        let mut pairs: Vec<(Vector3<f64>, Vector3<f64>, Vector3<f64>, f64)> =
-            Vec::with_capacity(cloud.len());
+        let mut pairs: Vec<Pair> = Vec::with_capacity(cloud.len());
         for iteration in 1..=max_iterations {
             pairs.clear();
             for p in cloud {
@@ -151,8 +77,8 @@ impl ModelIndex {
                 let (i, sq) = self.nearest(&query);
                 let d = (sq as f64).sqrt();
                 if d <= max_distance {
-                    let q = self.points[i];
-                    let n = self.normals[i];
+                    let q = self.points()[i];
+                    let n = self.normals()[i];
                     pairs.push((
                         source,
                         Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64),

@@ -19,7 +19,7 @@
 
 use nalgebra::Vector3;
 
-use crate::refine::{ModelIndex, Pose};
+use crate::index::{ModelIndex, Pose};
 use crate::Point3;
 
 /// The observed depth by viewing direction: the nearest observed depth in

@@ -1,14 +1,14 @@
 //! Viewpoint search: cosine top-K over a codebook's codes, and verification
 //! of candidate poses by how well the observed keypoints land on the model.
 
-use crate::refine::{ModelIndex, Pose};
+use crate::index::{ModelIndex, Pose};
 use crate::Point3;
 
 /// The `k` codes most similar to `query` (dot product of unit codes = cosine),
 /// best first, as `(view index, similarity)`. `codes` is row-major (V × dim).
 pub fn top_k(codes: &[f32], dim: usize, query: &[f32], k: usize) -> Vec<(usize, f32)> {
     assert!(
-        dim > 0 && codes.len() % dim == 0 && query.len() == dim,
+        dim > 0 && codes.len().is_multiple_of(dim) && query.len() == dim,
         "codes must be V × dim"
     );
     let mut scored: Vec<(usize, f32)> = codes

@@ -1,0 +1,225 @@
+//! The bindings' free functions: viewpoints, sampling, visibility, maps,
+//! code search and segmentation of an observed cloud.
+
+use numpy::ndarray::Array;
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3, PyUntypedArrayMethods,
+};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use super::arrays::{points_array, rotations_array, triples};
+use super::{guarded, InvalidCloudError, InvalidModelError};
+use crate::segment::{segment, SegmentSettings};
+use crate::{grouping, maps, sampling, search, views, visibility};
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(fibonacci_viewpoints, m)?)?;
+    m.add_function(wrap_pyfunction!(farthest_point_sample, m)?)?;
+    m.add_function(wrap_pyfunction!(visible_mask, m)?)?;
+    m.add_function(wrap_pyfunction!(normalize_to_map, m)?)?;
+    m.add_function(wrap_pyfunction!(map_neighbours, m)?)?;
+    m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
+    m.add_function(wrap_pyfunction!(top_k, m)?)?;
+    m.add_function(wrap_pyfunction!(segment_object, m)?)?;
+    Ok(())
+}
+
+/// `n` Fibonacci-sphere viewpoints: `(directions (n, 3), rotations (n, 3, 3))`.
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn fibonacci_viewpoints(
+    py: Python<'_>,
+    n: usize,
+) -> PyResult<(Bound<'_, PyArray2<f64>>, Bound<'_, PyArray3<f64>>)> {
+    guarded(|| {
+        let (directions, rotations) = py.detach(|| views::viewpoints(n));
+        let d: Vec<f64> = directions.iter().flat_map(|d| [d.x, d.y, d.z]).collect();
+        Ok((
+            Array::from_shape_vec((n, 3), d)
+                .expect("n × 3")
+                .into_pyarray(py),
+            rotations_array(py, rotations.iter()),
+        ))
+    })
+}
+
+/// Farthest-point sampling: indices of `m` points of an (N, 3) cloud.
+#[pyfunction]
+fn farthest_point_sample<'py>(
+    py: Python<'py>,
+    points: PyReadonlyArray2<'py, f32>,
+    m: usize,
+) -> PyResult<Bound<'py, PyArray1<u32>>> {
+    guarded(|| {
+        let p = triples(&points, "points").map_err(PyValueError::new_err)?;
+        let idx = py.detach(|| sampling::farthest_point_sample(p, m));
+        Ok(PyArray1::from_vec(py, idx))
+    })
+}
+
+/// Visibility flags of view-frame points and normals (camera looks along +z).
+#[pyfunction]
+fn visible_mask<'py>(
+    py: Python<'py>,
+    points: PyReadonlyArray2<'py, f32>,
+    normals: PyReadonlyArray2<'py, f32>,
+    spacing: f32,
+) -> PyResult<Bound<'py, PyArray1<bool>>> {
+    guarded(|| {
+        let p = triples(&points, "points").map_err(InvalidModelError::new_err)?;
+        let n = triples(&normals, "normals").map_err(InvalidModelError::new_err)?;
+        if p.len() != n.len() {
+            return Err(InvalidModelError::new_err(
+                "points and normals differ in length",
+            ));
+        }
+        Ok(PyArray1::from_vec(
+            py,
+            py.detach(|| visibility::visible_mask(p, n, spacing)),
+        ))
+    })
+}
+
+/// The encoder's neighbour groups of each map in `maps` (B, m, 3): for each
+/// map's first `centres` points, the indices of their `k` nearest map points
+/// (B, centres, k), in parallel over maps.
+#[pyfunction]
+fn map_neighbours<'py>(
+    py: Python<'py>,
+    maps: PyReadonlyArray3<'py, f32>,
+    centres: usize,
+    k: usize,
+) -> PyResult<Bound<'py, PyArray3<u32>>> {
+    guarded(|| {
+        let [b, m, three] = maps.shape() else {
+            unreachable!("a 3-D array")
+        };
+        let (b, m) = (*b, *m);
+        if *three != 3 || centres > m || k > m || centres == 0 || k == 0 {
+            return Err(PyValueError::new_err(format!(
+                "maps of shape {:?} cannot give {centres} centres with {k} neighbours",
+                maps.shape()
+            )));
+        }
+        let flat = maps
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("maps must be C-contiguous"))?;
+        let points = flat.as_chunks::<3>().0;
+        let groups = py.detach(|| grouping::neighbours_of_maps(points, m, centres, k));
+        Ok(Array::from_shape_vec((b, centres, k), groups)
+            .expect("B × centres × k")
+            .into_pyarray(py))
+    })
+}
+
+/// Centre, scale and resample a cloud to an `m`-point map: `(map (m, 3), centroid (3,))`.
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn normalize_to_map<'py>(
+    py: Python<'py>,
+    points: PyReadonlyArray2<'py, f32>,
+    scale: f32,
+    m: usize,
+) -> PyResult<(Bound<'py, PyArray2<f32>>, Bound<'py, PyArray1<f32>>)> {
+    guarded(|| {
+        let p = triples(&points, "points").map_err(InvalidCloudError::new_err)?;
+        if p.is_empty() {
+            return Err(InvalidCloudError::new_err("cloud is empty"));
+        }
+        let (map, centroid) = py.detach(|| maps::normalize_to_map(p, scale, m));
+        Ok((
+            points_array(py, &map),
+            PyArray1::from_vec(py, centroid.to_vec()),
+        ))
+    })
+}
+
+/// Rotation object → view frame for one direction (object frame, towards the camera).
+#[pyfunction]
+fn view_rotation<'py>(
+    py: Python<'py>,
+    direction: PyReadonlyArray1<'py, f64>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    guarded(|| {
+        let d = direction
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("direction must be contiguous"))?;
+        if d.len() != 3 || !d.iter().all(|v| v.is_finite()) || d.iter().all(|v| *v == 0.0) {
+            return Err(PyValueError::new_err(
+                "direction must be 3 finite values, not all zero",
+            ));
+        }
+        let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
+        Ok(
+            Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec())
+                .expect("3 × 3")
+                .into_pyarray(py),
+        )
+    })
+}
+
+/// The `k` codes most similar to `query`: `(indices (k,) u32, similarities (k,) f32)`, best first.
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn top_k<'py>(
+    py: Python<'py>,
+    codes: PyReadonlyArray2<'py, f32>,
+    query: PyReadonlyArray1<'py, f32>,
+    k: usize,
+) -> PyResult<(Bound<'py, PyArray1<u32>>, Bound<'py, PyArray1<f32>>)> {
+    guarded(|| {
+        let dim = codes.shape()[1];
+        let c = codes
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("codes must be C-contiguous"))?;
+        let q = query
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("query must be contiguous"))?;
+        if q.len() != dim || dim == 0 {
+            return Err(PyValueError::new_err(format!(
+                "query has {} values, codes have {dim}",
+                q.len()
+            )));
+        }
+        let best = py.detach(|| search::top_k(c, dim, q, k));
+        let (idx, sim): (Vec<u32>, Vec<f32>) = best.into_iter().map(|(i, s)| (i as u32, s)).unzip();
+        Ok((PyArray1::from_vec(py, idx), PyArray1::from_vec(py, sim)))
+    })
+}
+
+/// Which points of an observed cloud (camera frame, metres) belong to an
+/// object `diameter` metres across (outliers and background components
+/// removed; see the core's `segment` module for `shadow_spacings` and
+/// `max_shadowed_fraction`): `(keep (N,) bool, spacing)`, spacing being the
+/// median nearest-neighbour distance in metres.
+#[pyfunction]
+#[pyo3(signature = (cloud, diameter, shadow_spacings = 4.0, max_shadowed_fraction = 0.5, min_component_fraction = 0.01, max_component_offset = 0.8))]
+fn segment_object<'py>(
+    py: Python<'py>,
+    cloud: PyReadonlyArray2<'py, f32>,
+    diameter: f64,
+    shadow_spacings: f64,
+    max_shadowed_fraction: f64,
+    min_component_fraction: f64,
+    max_component_offset: f64,
+) -> PyResult<(Bound<'py, PyArray1<bool>>, f64)> {
+    guarded(|| {
+        let c = triples(&cloud, "cloud").map_err(InvalidCloudError::new_err)?;
+        if !(diameter.is_finite() && diameter > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "diameter must be a positive number of metres, got {diameter}"
+            )));
+        }
+        let settings = SegmentSettings {
+            shadow_spacings,
+            max_shadowed_fraction,
+            min_component_fraction,
+            max_component_offset,
+            ..SegmentSettings::default()
+        };
+        let found = py.detach(|| segment(c, diameter, &settings));
+        Ok((PyArray1::from_vec(py, found.keep), found.spacing))
+    })
+}

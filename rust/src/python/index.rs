@@ -1,0 +1,214 @@
+//! `ModelIndex`: the model's kd-tree for verification, scoring and ICP, and
+//! `IcpResults`, ICP's typed outcome.
+
+use numpy::{PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use super::arrays::{poses_from, rotations_array, translations_array, triples};
+use super::model::PyStandardModel;
+use super::{guarded, InvalidCloudError};
+use crate::index::ModelIndex;
+use crate::refine::IcpResult;
+use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
+use crate::{search, Point3};
+
+/// Borrows an observed cloud (N, 3) float32, camera frame; a bad shape is an
+/// `InvalidCloudError`.
+fn cloud_triples<'a>(array: &'a PyReadonlyArray2<'_, f32>, name: &str) -> PyResult<&'a [Point3]> {
+    triples(array, name).map_err(InvalidCloudError::new_err)
+}
+
+/// A model's points and normals (model frame, metres) with a kd-tree, for
+/// verification, scoring and ICP. Immutable: safe to share between threads.
+#[pyclass(frozen, name = "ModelIndex", module = "edgepose._core")]
+pub struct PyModelIndex {
+    inner: ModelIndex,
+}
+
+#[pymethods]
+impl PyModelIndex {
+    #[new]
+    fn new(py: Python<'_>, model: &PyStandardModel) -> PyResult<Self> {
+        guarded(|| {
+            let (points, normals) = (model.inner.points.clone(), model.inner.normals.clone());
+            Ok(Self {
+                inner: py.detach(|| ModelIndex::new(points, normals)),
+            })
+        })
+    }
+
+    fn __len__(&self) -> usize {
+        self.inner.len()
+    }
+
+    /// Mean keypoint-to-model distance (metres) for each candidate pose
+    /// (model → camera: `rotations` (C, 3, 3), `translations` (C, 3)).
+    fn verify<'py>(
+        &self,
+        py: Python<'py>,
+        keypoints: PyReadonlyArray2<'py, f32>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        guarded(|| {
+            let k = cloud_triples(&keypoints, "keypoints")?;
+            let poses = poses_from(&rotations, &translations)?;
+            Ok(PyArray1::from_vec(
+                py,
+                py.detach(|| search::verify(&self.inner, k, &poses)),
+            ))
+        })
+    }
+
+    /// Each pose's translation moved so the `observed` points (camera frame)
+    /// land on the model (rotations kept): `translations (C, 3)`.
+    fn align_translations<'py>(
+        &self,
+        py: Python<'py>,
+        observed: PyReadonlyArray2<'py, f32>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+        iterations: usize,
+        max_distance: f64,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        guarded(|| {
+            let o = cloud_triples(&observed, "observed")?;
+            let poses = poses_from(&rotations, &translations)?;
+            if !(max_distance.is_finite() && max_distance >= 0.0) {
+                return Err(PyValueError::new_err(format!(
+                    "max_distance must be finite and non-negative, got {max_distance}"
+                )));
+            }
+            let out =
+                py.detach(|| align_translations(&self.inner, o, &poses, iterations, max_distance));
+            Ok(translations_array(py, out.iter().map(|p| &p.translation)))
+        })
+    }
+
+    /// Scores each candidate pose (model → camera: `rotations` (C, 3, 3),
+    /// `translations` (C, 3)) against the `observed` points and the whole
+    /// observed `cloud` (camera frame, metres; its point `spacing` sizes the
+    /// free-space grid): `(fit (C,) metres, inlier_fraction (C,),
+    /// free_space_violation (C,))` (see the core's `scoring` module).
+    #[allow(clippy::too_many_arguments)]
+    fn score<'py>(
+        &self,
+        py: Python<'py>,
+        observed: PyReadonlyArray2<'py, f32>,
+        cloud: PyReadonlyArray2<'py, f32>,
+        spacing: f64,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+        inlier_distance: f64,
+        free_space_tolerance: f64,
+        model_stride: usize,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        guarded(|| {
+            let o = cloud_triples(&observed, "observed")?;
+            let c = cloud_triples(&cloud, "cloud")?;
+            let poses = poses_from(&rotations, &translations)?;
+            if ![spacing, inlier_distance, free_space_tolerance]
+                .iter()
+                .all(|v| v.is_finite() && *v >= 0.0)
+            {
+                return Err(PyValueError::new_err(
+                    "spacing and distances must be finite and non-negative",
+                ));
+            }
+            let settings = ScoreSettings {
+                inlier_distance,
+                free_space_tolerance,
+                model_stride,
+            };
+            let scores = py.detach(|| {
+                let grid = DepthGrid::new(c, spacing, 2.0);
+                score_poses(&self.inner, o, &grid, &poses, &settings)
+            });
+            (
+                PyArray1::from_vec(py, scores.iter().map(|s| s.fit).collect()),
+                PyArray1::from_vec(py, scores.iter().map(|s| s.inlier_fraction).collect()),
+                PyArray1::from_vec(py, scores.iter().map(|s| s.free_space_violation).collect()),
+            )
+                .into_pyobject(py)
+                .map(|t| t.into_any())
+        })
+    }
+
+    /// Point-to-plane ICP of `cloud` (camera frame) from each start pose
+    /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)), one
+    /// after another: one result per start, in order.
+    fn refine(
+        &self,
+        py: Python<'_>,
+        cloud: PyReadonlyArray2<'_, f32>,
+        rotations: PyReadonlyArray3<'_, f64>,
+        translations: PyReadonlyArray2<'_, f64>,
+        max_iterations: usize,
+        max_distance: f64,
+    ) -> PyResult<PyIcpResults> {
+        guarded(|| {
+            let c = cloud_triples(&cloud, "cloud")?;
+            let starts = poses_from(&rotations, &translations)?;
+            let results = py.detach(|| {
+                self.inner
+                    .refine_each(c, &starts, max_iterations, max_distance)
+            });
+            Ok(PyIcpResults { results })
+        })
+    }
+}
+
+/// ICP's outcome for each of H start poses, in order, as arrays.
+/// Immutable; every getter returns a new array.
+#[pyclass(frozen, name = "IcpResults", module = "edgepose._core")]
+pub struct PyIcpResults {
+    results: Vec<IcpResult>,
+}
+
+#[pymethods]
+impl PyIcpResults {
+    fn __len__(&self) -> usize {
+        self.results.len()
+    }
+
+    /// (H, 3, 3) float64 refined rotations, model → camera.
+    #[getter]
+    fn rotations<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray3<f64>> {
+        rotations_array(py, self.results.iter().map(|r| &r.pose.rotation))
+    }
+
+    /// (H, 3) float64 refined translations, metres.
+    #[getter]
+    fn translations<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        translations_array(py, self.results.iter().map(|r| &r.pose.translation))
+    }
+
+    /// (H,) uint32 iterations run.
+    #[getter]
+    fn iterations<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<u32>> {
+        PyArray1::from_vec(
+            py,
+            self.results.iter().map(|r| r.iterations as u32).collect(),
+        )
+    }
+
+    /// (H,) bool: the last update moved less than the convergence threshold.
+    #[getter]
+    fn converged<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<bool>> {
+        PyArray1::from_vec(py, self.results.iter().map(|r| r.converged).collect())
+    }
+
+    /// (H,) uint32 cloud points paired with the model in the last iteration.
+    #[getter]
+    fn inliers<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<u32>> {
+        PyArray1::from_vec(py, self.results.iter().map(|r| r.inliers as u32).collect())
+    }
+
+    /// (H,) float64 root-mean-square point-to-plane distance of the inliers,
+    /// metres (NaN when ICP found too few pairs to run).
+    #[getter]
+    fn rmse<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.results.iter().map(|r| r.rmse).collect())
+    }
+}

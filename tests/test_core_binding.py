@@ -1,0 +1,123 @@
+"""The compiled core's binding: its stub file matches the module, its results
+are typed, and it raises edgepose's own exceptions."""
+
+from __future__ import annotations
+
+import ast
+import inspect
+from pathlib import Path
+
+import edgepose
+import numpy as np
+import pytest
+from edgepose import _core
+from edgepose.errors import InvalidCloudError, InvalidModelError
+
+STUB = Path(edgepose.__file__).parent / "_core.pyi"
+
+
+def _stub() -> tuple[dict[str, list[str]], dict[str, dict[str, list[str] | None]]]:
+    """Functions (name → parameter names) and classes (name → member →
+    parameter names, None for properties) declared in ``_core.pyi``."""
+    functions: dict[str, list[str]] = {}
+    classes: dict[str, dict[str, list[str] | None]] = {}
+
+    def parameters(node: ast.FunctionDef) -> list[str]:
+        args = node.args
+        names = [a.arg for a in args.posonlyargs + args.args + args.kwonlyargs]
+        return [n for n in names if n != "self"]
+
+    for node in ast.parse(STUB.read_text()).body:
+        if isinstance(node, ast.FunctionDef):
+            functions[node.name] = parameters(node)
+        elif isinstance(node, ast.ClassDef):
+            members: dict[str, list[str] | None] = {}
+            for item in node.body:
+                if isinstance(item, ast.FunctionDef):
+                    is_property = any(isinstance(d, ast.Name) and d.id == "property" for d in item.decorator_list)
+                    members[item.name] = None if is_property else parameters(item)
+            classes[node.name] = members
+    return functions, classes
+
+
+def _runtime_parameters(obj) -> list[str]:
+    return [p for p in inspect.signature(obj).parameters if p != "self"]
+
+
+def test_the_stub_declares_exactly_the_modules_functions_and_classes():
+    functions, classes = _stub()
+    runtime = {name for name in dir(_core) if not name.startswith("__")}
+    if not hasattr(_core, "_panic_for_tests"):  # a build without the test-hooks feature
+        functions.pop("_panic_for_tests")
+    assert set(functions) | set(classes) == runtime
+    for name, params in functions.items():
+        assert _runtime_parameters(getattr(_core, name)) == params, name
+
+
+def test_the_stub_declares_each_class_member_with_its_parameters():
+    _, classes = _stub()
+    for class_name, members in classes.items():
+        cls = getattr(_core, class_name)
+        runtime = {name for name in vars(cls) if not name.startswith("__")}
+        declared = {name for name in members if not name.startswith("__")}
+        assert declared == runtime, class_name
+        for name, params in members.items():
+            if name == "__init__":
+                assert _runtime_parameters(cls) == params, class_name
+            elif params is None:
+                assert inspect.isgetsetdescriptor(vars(cls)[name]), f"{class_name}.{name} is not a property"
+            elif not name.startswith("__"):
+                assert _runtime_parameters(getattr(cls, name)) == params, f"{class_name}.{name}"
+
+
+def _box_model() -> _core.StandardModel:
+    """A 4 × 6 × 8 cm box, 512 points."""
+    import trimesh
+
+    mesh = trimesh.creation.box(extents=(0.04, 0.06, 0.08))
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    return _core.StandardModel.from_mesh(vertices, np.asarray(mesh.faces, dtype=np.uint32), 512, 0)
+
+
+def test_icp_results_are_typed_with_one_entry_per_start():
+    model = _box_model()
+    index = _core.ModelIndex(model)
+    truth = np.array([0.01, -0.02, 0.5])
+    cloud = np.ascontiguousarray(model.points + truth.astype(np.float32))
+    starts_R = np.stack([np.eye(3), np.eye(3)])
+    starts_t = np.array([truth + [0.004, 0, 0], truth + [0, -0.003, 0.002]])
+    icp = index.refine(cloud, starts_R, starts_t, 30, 0.02)
+    assert isinstance(icp, _core.IcpResults) and len(icp) == 2
+    assert icp.rotations.shape == (2, 3, 3) and icp.translations.shape == (2, 3)
+    assert icp.iterations.dtype == np.uint32 and icp.converged.dtype == np.bool_
+    assert (icp.inliers > 400).all() and (icp.rmse < 1e-3).all()
+    np.testing.assert_allclose(icp.translations, [truth, truth], atol=1e-4)
+    with pytest.raises(AttributeError):
+        icp.rmse = np.zeros(2)  # frozen
+
+
+def test_the_model_is_built_once_and_shared_by_maps_and_index():
+    model = _box_model()
+    assert len(model) == 512 and model.points.shape == (512, 3) and model.centre.shape == (3,)
+    assert 0.1 < model.diameter < 0.11 and model.scale == pytest.approx(1 / np.linalg.norm(model.points, axis=1).max())
+    rotations = edgepose.fibonacci_viewpoints(4).rotations
+    maps, centroids, visible = _core.compute_maps(model, rotations, 64)
+    assert maps.shape == (4, 64, 3) and centroids.shape == (4, 3) and (visible > 0).all()
+    assert len(_core.ModelIndex(model)) == 512
+
+
+def test_the_core_raises_edgeposes_own_exceptions():
+    model = _box_model()
+    index = _core.ModelIndex(model)
+    eye = np.eye(3)[None]
+    with pytest.raises(InvalidCloudError, match=r"cloud must have shape \(N, 3\)"):
+        index.refine(np.zeros((5, 2), np.float32), eye, np.zeros((1, 3)), 5, 0.01)
+    with pytest.raises(InvalidCloudError, match="observed"):
+        index.align_translations(np.zeros((5, 4), np.float32), eye, np.zeros((1, 3)), 1, 0.01)
+    with pytest.raises(InvalidModelError, match=r"lid\.obj: .*zero surface area"):
+        flat = np.zeros((3, 3))
+        _core.StandardModel.from_mesh(flat, np.array([[0, 1, 2]], np.uint32), 64, 0, source="lid.obj")
+    with pytest.raises(InvalidModelError, match="non-empty"):
+        _core.StandardModel(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(3), 1.0, 1.0, 0.1)
+    with pytest.raises(InvalidCloudError, match="empty"):
+        _core.normalize_to_map(np.zeros((0, 3), np.float32), 1.0, 16)
