@@ -8,12 +8,14 @@ import struct
 import edgepose
 import numpy as np
 import pytest
+from conftest import SHIPPED
 from edgepose.codebook import MAX_FILE_BYTES, VERSION, _checksum
 
 
 @pytest.fixture(scope="module")
-def drill_codebook(ycb_dir) -> edgepose.Codebook:
-    return edgepose.build_codebook(ycb_dir / "power_drill.ply")
+def drill_codebook() -> edgepose.Codebook:
+    """A codebook built here from the shipped drill mesh (no ../shared needed)."""
+    return edgepose.build_codebook(SHIPPED / "power_drill.ply")
 
 
 def test_built_codebook_holds_what_the_method_needs(drill_codebook):

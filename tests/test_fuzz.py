@@ -23,7 +23,6 @@ import edgepose
 import numpy as np
 import pytest
 from edgepose.eval import render_view
-from edgepose.model import read_mesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -170,12 +169,6 @@ def check_estimate(cloud: object, codebook: edgepose.Codebook) -> str:
 
 
 # --- the CI run ----------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def drill(ycb_dir):
-    mesh = read_mesh(ycb_dir / "power_drill.ply")
-    return mesh, edgepose.build_codebook(mesh)
 
 
 @pytest.fixture(scope="module")

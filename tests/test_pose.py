@@ -11,12 +11,6 @@ from edgepose.eval import pose_errors, render_view
 from edgepose.model import read_mesh
 
 
-@pytest.fixture(scope="module")
-def drill(ycb_dir):
-    mesh = read_mesh(ycb_dir / "power_drill.ply")
-    return mesh, edgepose.build_codebook(mesh)
-
-
 def errors(pose, view, codebook):
     model_points = codebook.model.mesh_points
     return pose_errors(model_points, pose.matrix, view.T_cam_obj, codebook.model.diameter, symmetric=False)

@@ -24,14 +24,7 @@ from edgepose import _core
 from edgepose.cloud import MIN_POINTS, as_cloud
 from edgepose.errors import InternalError
 from edgepose.eval import pose_errors, render_view
-from edgepose.model import read_mesh
 from safetensors.numpy import load_file
-
-
-@pytest.fixture(scope="module")
-def drill(ycb_dir):
-    mesh = read_mesh(ycb_dir / "power_drill.ply")
-    return mesh, edgepose.build_codebook(mesh)
 
 
 @pytest.fixture(scope="module")

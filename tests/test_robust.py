@@ -9,10 +9,8 @@ import edgepose
 import numpy as np
 import pytest
 from edgepose import _core
-from edgepose.cli import SHIPPED_DIR
 from edgepose.cloud import FLYING_PIXEL_JUMP, depth_discontinuities, dilate, erode
 from edgepose.eval import pose_errors, render_scene
-from edgepose.model import read_mesh
 from edgepose.pose import near_the_cloud, prepare_query
 
 K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
@@ -70,12 +68,6 @@ def test_segmentation_drops_a_spilled_background_ring_and_keeps_an_occluded_obje
     assert keep[on_object].all(), "both halves of the occluded object are kept"
     assert not keep[~on_object].any(), "the wall ring behind it is dropped"
     assert 0.0008 < spacing < 0.0016  # 0.6 m / 500 px = 1.2 mm between pixels
-
-
-@pytest.fixture(scope="module")
-def drill(ycb_dir):
-    mesh = read_mesh(ycb_dir / "power_drill.ply")
-    return mesh, edgepose.Codebook.load(SHIPPED_DIR / "power_drill.codebook")
 
 
 def test_free_space_separates_the_true_pose_from_a_turned_over_one(drill):
