@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import edgepose
 import numpy as np
 from edgepose.maps import DEFAULT_MAP_POINTS, visible_mask
+from edgepose.views import rotation_about_z
 
 #: Observed views lie this close to their codebook view (2,100 views are ~4.4° apart).
 MAX_VIEW_OFFSET_DEG = 3.0
@@ -43,11 +44,6 @@ def perturb(direction: np.ndarray, max_deg: float, rng: np.random.Generator) -> 
     angle = np.radians(max_deg) * np.sqrt(rng.random())
     # Rodrigues rotation of `direction` about `axis` (perpendicular to it).
     return direction * np.cos(angle) + np.cross(axis, direction) * np.sin(angle)
-
-
-def rot_z(theta: float) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def observe(
@@ -115,7 +111,7 @@ def sample_batch(
         for d in random_directions(rng, views_per_shape):
             r_book = edgepose.view_rotation(d)
             theta = rng.uniform(-np.pi, np.pi)
-            r_obs = rot_z(theta) @ edgepose.view_rotation(perturb(d, MAX_VIEW_OFFSET_DEG, rng))
+            r_obs = rotation_about_z(theta) @ edgepose.view_rotation(perturb(d, MAX_VIEW_OFFSET_DEG, rng))
             observed.append(observe(model, r_obs, rng))
             # The turn codebook → observed is the z-rotation part of R_obs R_bookᵀ.
             rel = r_obs @ r_book.T

@@ -3,8 +3,9 @@
     .venv/bin/python -m export.evaluate [--models python/edgepose/models] [--queries 100]
 
 Queries are rendered depth views (edgepose.eval.render_view: 1 mm noise,
-1 mm quantisation, 2 % dropout, random pose 0.45–0.9 m away), viewpoint-
-corrected and resampled exactly as at run time. For each query:
+1 mm quantisation, 2 % dropout, random pose 0.45–0.9 m away), made ready and
+searched by ``estimate``'s own stages (``edgepose.pose.prepare_query`` and
+``retrieve``, default settings). For each query:
 
 * retrieval: the top-K codes (cosine) over the 2,100-view codebook succeed when
   one candidate's direction lies within 15° of the true view direction; for the
@@ -28,23 +29,12 @@ import numpy as np
 from edgepose.encoder import MODELS_DIR, Encoder
 from edgepose.eval import YCB_SYMMETRIC, add_s, render_view
 from edgepose.model import read_mesh
-from edgepose.views import ray_alignment
+from edgepose.pose import prepare_query, retrieve
+from edgepose.views import rotation_about_z
 
 YCB = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycb"
 TOP_K = 16
 WITHIN_DEG = 15.0
-
-
-def query_map(cloud: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """(map, R_corr): the observed cloud turned so its centroid ray is the optical axis."""
-    r_corr = ray_alignment(cloud.mean(axis=0))
-    corrected = (cloud - cloud.mean(axis=0)) @ r_corr.T
-    return edgepose.normalize_to_map(corrected.astype(np.float32), scale)[0], r_corr
-
-
-def rot_z(theta: float) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def angle_deg(a: float, b: float) -> float:
@@ -53,27 +43,24 @@ def angle_deg(a: float, b: float) -> float:
 
 def evaluate_object(encoder: Encoder, path: Path, queries: int, seed: int) -> dict:
     mesh = read_mesh(path)
-    model = edgepose.load_model(mesh)
-    views = edgepose.fibonacci_viewpoints(2100)
-    codes, spectra = encoder.encode(edgepose.compute_maps(model, views).points)
+    codebook = edgepose.build_codebook(mesh, encoder=encoder)
+    model, views = codebook.model, codebook.viewpoints
     symmetric = path.stem in YCB_SYMMETRIC
     top1 = top_k = 0
     irr_errors = []
     for q in range(queries):
         view = render_view(mesh, seed=seed * 100_000 + q)
-        qmap, r_corr = query_map(view.cloud, model.scale)
-        r_true = r_corr @ view.T_cam_obj[:3, :3]  # object → corrected view
+        query = prepare_query(view.cloud, codebook)
+        r_true = query.r_corr @ view.T_cam_obj[:3, :3]  # object → corrected view
         direction = -r_true[2]  # object frame, towards the camera
-        code, spectrum = encoder.encode(qmap[None])
-        candidates = np.argsort(-(codes @ code[0]))[:TOP_K]
+        candidates, _, angles, _ = retrieve(query, codebook, encoder, TOP_K)
         near = np.degrees(np.arccos(np.clip(views.directions[candidates] @ direction, -1, 1))) <= WITHIN_DEG
         top1 += bool(near[0])
         ok = bool(near.any())
         if symmetric and not ok:
-            angles = encoder.in_plane_angles(spectrum[0], spectra[candidates])
             for v, theta in zip(candidates, angles):
                 pose, truth = np.eye(4), np.eye(4)
-                pose[:3, :3] = rot_z(theta) @ views.rotations[v]
+                pose[:3, :3] = rotation_about_z(theta) @ views.rotations[v]
                 truth[:3, :3] = r_true
                 if add_s(model.points, pose, truth) < 0.1 * model.diameter:
                     ok = True
@@ -83,6 +70,7 @@ def evaluate_object(encoder: Encoder, path: Path, queries: int, seed: int) -> di
         r_view = edgepose.view_rotation(direction)
         true_map = edgepose.compute_maps(model, edgepose.Viewpoints(direction[None], r_view[None])).points
         _, true_spectrum = encoder.encode(true_map)
+        _, spectrum = encoder.encode(query.map[None])
         rel = r_true @ r_view.T
         theta = encoder.in_plane_angles(spectrum[0], true_spectrum)[0]
         irr_errors.append(angle_deg(theta, np.arctan2(rel[1, 0], rel[0, 0])))

@@ -12,6 +12,7 @@ torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
 from edgepose.encoder import Encoder  # noqa: E402
+from edgepose.views import rotation_about_z  # noqa: E402
 
 from export import data, network, shapes, train  # noqa: E402
 
@@ -84,7 +85,7 @@ def test_training_pairs_carry_the_true_in_plane_angle(monkeypatch):
     assert np.all(np.abs(batch.angles) <= np.pi)
     # The observed map, turned back by the angle, lines up with the codebook map.
     for obs, book, theta in zip(batch.observed, batch.codebook, batch.angles):
-        back = obs @ data.rot_z(-theta).T
+        back = obs @ rotation_about_z(-theta).T
         err_back = np.mean(np.min(np.linalg.norm(back[:, None] - book[None], axis=2), axis=1))
         err_raw = np.mean(np.min(np.linalg.norm(obs[:, None] - book[None], axis=2), axis=1))
         assert err_back < 0.1 and err_back < 0.5 * err_raw, (err_back, err_raw)
