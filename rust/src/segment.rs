@@ -16,7 +16,7 @@
 //!    in the image but behind it, the way a mask's spill onto the table or
 //!    wall behind an object does.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::hash::{BuildHasherDefault, Hasher};
 use std::num::NonZero;
 
@@ -92,11 +92,12 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     let radius = (settings.cluster_spacings * spacing) as f32;
 
     // Pairs of points within `radius`, found through a grid of cells that
-    // size (every neighbour lies in the 27 cells around a point).
+    // size (every neighbour lies in the 27 cells around a point). Pair
+    // order does not matter: a component's root is its lowest index.
     let mut pairs: Vec<(u32, u32)> = Vec::with_capacity(32 * n);
     let mut counts = vec![0.0f64; n];
     CellGrid::new(cloud, radius, false).for_each_pair(|i, j| {
-        if i < j && squared_distance(&cloud[i], &cloud[j]) <= radius * radius {
+        if squared_distance(&cloud[i], &cloud[j]) <= radius * radius {
             pairs.push((i as u32, j as u32));
             counts[i] += 1.0;
             counts[j] += 1.0;
@@ -130,13 +131,18 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // Components in the shadow of another (beside it in the image, behind
     // it) are background the mask picked up, whatever their size.
     let root_of: Vec<usize> = (0..n).map(|i| components.find(i)).collect();
-    let shadowed = in_shadow(
-        cloud,
-        &root_of,
-        &inlier,
-        settings.shadow_spacings * spacing,
-        radius as f64,
-    );
+    let single = (0..n).filter(|&r| size[r] > 0).count() == 1;
+    let shadowed = if single {
+        vec![false; n]
+    } else {
+        in_shadow(
+            cloud,
+            &root_of,
+            &inlier,
+            settings.shadow_spacings * spacing,
+            radius as f64,
+        )
+    };
     let mut shadowed_count = vec![0usize; n];
     for i in (0..n).filter(|&i| shadowed[i]) {
         shadowed_count[root_of[i]] += 1;
@@ -148,21 +154,46 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
         .iter()
         .map(|p| [p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64])
         .collect();
+    // The hull of every component's rays is the hull of the rest for each
+    // component that owns none of its corners: built once, not per component.
+    let in_front = |i: usize| inlier[i] && cloud[i][2] > 0.0;
+    let whole = std::cell::OnceCell::new();
+    let whole = || {
+        whole.get_or_init(|| {
+            let hull = convex_hull((0..n).filter(|&i| in_front(i)).map(|i| rays[i]).collect());
+            let corners: HashSet<[u64; 2]> = hull.iter().map(|r| r.map(f64::to_bits)).collect();
+            (hull, corners)
+        })
+    };
+    // Inlier points grouped by component (roots ascending).
+    let mut members: Vec<usize> = (0..n).filter(|&i| inlier[i]).collect();
+    members.sort_by_key(|&i| (root_of[i], i));
     let mut lit_root = vec![false; n];
-    for root in (0..n).filter(|&r| size[r] > 0) {
+    for group in members.chunk_by(|&a, &b| root_of[a] == root_of[b]) {
+        let root = root_of[group[0]];
         lit_root[root] =
             (shadowed_count[root] as f64) < settings.max_shadowed_fraction * size[root] as f64 || {
-                let others: Vec<[f64; 2]> = (0..n)
-                    .filter(|&i| inlier[i] && root_of[i] != root && cloud[i][2] > 0.0)
-                    .map(|i| rays[i])
-                    .collect();
-                let hull = convex_hull(others);
-                let mine: Vec<usize> = (0..n)
-                    .filter(|&i| inlier[i] && root_of[i] == root)
-                    .collect();
+                let mine = group;
+                let (whole, corners) = whole();
+                let owns_a_corner = whole.len() < 3
+                    || mine
+                        .iter()
+                        .any(|&i| in_front(i) && corners.contains(&rays[i].map(f64::to_bits)));
+                let rest;
+                let hull = if owns_a_corner {
+                    rest = convex_hull(
+                        (0..n)
+                            .filter(|&i| in_front(i) && root_of[i] != root)
+                            .map(|i| rays[i])
+                            .collect(),
+                    );
+                    &rest
+                } else {
+                    whole
+                };
                 let inside = mine
                     .iter()
-                    .filter(|&&i| inside_convex(&hull, rays[i]))
+                    .filter(|&&i| inside_convex(hull, rays[i]))
                     .count();
                 10 * inside >= 9 * mine.len()
             };
@@ -218,12 +249,13 @@ fn in_shadow(
         .collect();
     CellGrid::new(&rays, reach.max(1e-9), true).for_each_pair(|a, b| {
         let (i, j) = (front[a], front[b]);
-        if !shadowed[i]
-            && root_of[j] != root_of[i]
-            && (cloud[i][2] - cloud[j][2]) as f64 > gap
-            && squared_distance(&rays[a], &rays[b]) <= reach * reach
-        {
-            shadowed[i] = true;
+        if root_of[j] != root_of[i] && squared_distance(&rays[a], &rays[b]) <= reach * reach {
+            let behind = (cloud[i][2] - cloud[j][2]) as f64;
+            if behind > gap {
+                shadowed[i] = true;
+            } else if -behind > gap {
+                shadowed[j] = true;
+            }
         }
     });
     shadowed
@@ -312,27 +344,36 @@ impl CellGrid {
         }
     }
 
-    /// Calls `visit(i, j)` for every point `i` and every point `j` in the
-    /// cubes around `i`'s (`j == i` included), cube by cube in a fixed order.
+    /// Calls `visit(i, j)` once for every unordered pair of distinct points
+    /// in the same or neighbouring cubes, cube by cube in a fixed order: the
+    /// pairs within a cube, then those with each neighbouring cube that
+    /// sorts after it (so no pair is seen twice).
     fn for_each_pair(&self, mut visit: impl FnMut(usize, usize)) {
         let depth = if self.flat { 0 } else { 1 };
-        let mut around: Vec<(u32, u32)> = Vec::with_capacity(27);
+        let mut after: Vec<(u32, u32)> = Vec::with_capacity(13);
         for &(c, a, b) in &self.cells {
-            around.clear();
+            after.clear();
             for dx in -1..=1 {
                 for dy in -1..=1 {
                     for dz in -depth..=depth {
-                        if let Some(&range) = self.ranges.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
-                            around.push(range);
+                        let key = [c[0] + dx, c[1] + dy, c[2] + dz];
+                        if key > c {
+                            if let Some(&range) = self.ranges.get(&key) {
+                                after.push(range);
+                            }
                         }
                     }
                 }
             }
-            for &i in &self.order[a as usize..b as usize] {
-                for &(ra, rb) in &around {
-                    self.order[ra as usize..rb as usize]
-                        .iter()
-                        .for_each(|&j| visit(i as usize, j as usize));
+            let mine = &self.order[a as usize..b as usize];
+            for (x, &i) in mine.iter().enumerate() {
+                for &j in &mine[x + 1..] {
+                    visit(i as usize, j as usize);
+                }
+                for &(ra, rb) in &after {
+                    for &j in &self.order[ra as usize..rb as usize] {
+                        visit(i as usize, j as usize);
+                    }
                 }
             }
         }
