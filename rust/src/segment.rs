@@ -16,7 +16,7 @@
 //!    in the image but behind it, the way a mask's spill onto the table or
 //!    wall behind an object does.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 use std::num::NonZero;
 
@@ -154,46 +154,46 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
         .iter()
         .map(|p| [p[0] as f64 / p[2] as f64, p[1] as f64 / p[2] as f64])
         .collect();
-    // The hull of every component's rays is the hull of the rest for each
-    // component that owns none of its corners: built once, not per component.
+    // Inlier points grouped by component (roots ascending), and each
+    // group's hull corners in the image: the hull of the rest of the cloud
+    // is the hull of the other groups' corners (a few dozen points each).
     let in_front = |i: usize| inlier[i] && cloud[i][2] > 0.0;
-    let whole = std::cell::OnceCell::new();
-    let whole = || {
-        whole.get_or_init(|| {
-            let hull = convex_hull((0..n).filter(|&i| in_front(i)).map(|i| rays[i]).collect());
-            let corners: HashSet<[u64; 2]> = hull.iter().map(|r| r.map(f64::to_bits)).collect();
-            (hull, corners)
-        })
-    };
-    // Inlier points grouped by component (roots ascending).
     let mut members: Vec<usize> = (0..n).filter(|&i| inlier[i]).collect();
     members.sort_by_key(|&i| (root_of[i], i));
+    let groups: Vec<&[usize]> = members
+        .chunk_by(|&a, &b| root_of[a] == root_of[b])
+        .collect();
+    let corners = std::cell::OnceCell::new();
+    let corners = || {
+        corners.get_or_init(|| -> Vec<Vec<[f64; 2]>> {
+            let front_rays = |group: &[usize]| {
+                group
+                    .iter()
+                    .filter(|&&i| in_front(i))
+                    .map(|&i| rays[i])
+                    .collect()
+            };
+            groups
+                .iter()
+                .map(|group| convex_hull(front_rays(group)))
+                .collect()
+        })
+    };
     let mut lit_root = vec![false; n];
-    for group in members.chunk_by(|&a, &b| root_of[a] == root_of[b]) {
-        let root = root_of[group[0]];
+    for (g, mine) in groups.iter().enumerate() {
+        let root = root_of[mine[0]];
         lit_root[root] =
             (shadowed_count[root] as f64) < settings.max_shadowed_fraction * size[root] as f64 || {
-                let mine = group;
-                let (whole, corners) = whole();
-                let owns_a_corner = whole.len() < 3
-                    || mine
-                        .iter()
-                        .any(|&i| in_front(i) && corners.contains(&rays[i].map(f64::to_bits)));
-                let rest;
-                let hull = if owns_a_corner {
-                    rest = convex_hull(
-                        (0..n)
-                            .filter(|&i| in_front(i) && root_of[i] != root)
-                            .map(|i| rays[i])
-                            .collect(),
-                    );
-                    &rest
-                } else {
-                    whole
-                };
+                let others: Vec<[f64; 2]> = corners()
+                    .iter()
+                    .enumerate()
+                    .filter(|&(h, _)| h != g)
+                    .flat_map(|(_, c)| c.iter().copied())
+                    .collect();
+                let hull = convex_hull(others);
                 let inside = mine
                     .iter()
-                    .filter(|&&i| inside_convex(hull, rays[i]))
+                    .filter(|&&i| inside_convex(&hull, rays[i]))
                     .count();
                 10 * inside >= 9 * mine.len()
             };
