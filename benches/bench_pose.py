@@ -12,7 +12,7 @@ Methods: ``edgepose`` (picked up once ``edgepose.build_codebook`` and
 (point-pair features + ICP) and ``opencv-ppf-fast`` (coarser PPF settings).
 The peers need the ``baselines`` extra.
 
-Stress levels (``edgepose.eval.scenes.STRESS_LEVELS``; default: all): views
+Stress levels (``edgepose.eval.stress.STRESS_LEVELS``; default: all): views
 of each object at each level are rendered once from fixed seeds (the same
 seeds at every level, so one seed gives the same pose at every level with the
 same distance range), and every method sees identical clouds. Each method
@@ -40,27 +40,22 @@ import datetime
 import os
 import platform
 import shlex
-import statistics
 import sys
 import time
 import traceback
-from collections.abc import Callable
 from pathlib import Path
 
 import edgepose
 import numpy as np
-from edgepose.eval import BopRow, auc, write_bop_csv
-from edgepose.eval.baselines import (
-    EdgePoseMethod,
-    Open3DBaseline,
-    OpenCVPPFBaseline,
-    PoseMethod,
-    available_edgepose,
-)
+from edgepose import report
+from edgepose.catalog import CatalogError, find_meshes
+from edgepose.eval import YCBV_OBJ_ID, BopRow, auc, write_bop_csv
+from edgepose.eval.baselines import PoseMethod, available_edgepose
 from edgepose.eval.benchmark import BenchObject as ObjectData
 from edgepose.eval.benchmark import MethodRun, load_object, summarise
 from edgepose.eval.benchmark import run_method as run_views
-from edgepose.eval.scenes import STRESS_LEVELS
+from edgepose.eval.methods import METHODS, create_method
+from edgepose.eval.stress import STRESS_LEVELS
 from edgepose.settings import DEFAULT_SETTINGS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -72,68 +67,8 @@ TUNE_MESHES = ["bunny.ply", "fandisk.obj", "teapot.stl", "suzanne.ply", "idler_r
 TUNE_DIAMETER = (0.08, 0.25)
 #: Seeds of tuning views start here (the reported views use seed·100000 + k·1000 + i, k < 100).
 TUNE_SEED_BASE = 777_000
-MESH_SUFFIXES = {".ply", ".obj", ".stl", ".off", ".glb"}
-
-#: BOP object ids of the YCB-Video dataset (others get 100 + their index).
-YCBV_OBJ_ID = {
-    "master_chef_can": 1,
-    "cracker_box": 2,
-    "sugar_box": 3,
-    "tomato_soup_can": 4,
-    "mustard_bottle": 5,
-    "tuna_fish_can": 6,
-    "pudding_box": 7,
-    "gelatin_box": 8,
-    "potted_meat_can": 9,
-    "banana": 10,
-    "pitcher_base": 11,
-    "bleach_cleanser": 12,
-    "bowl": 13,
-    "mug": 14,
-    "power_drill": 15,
-    "wood_block": 16,
-    "scissors": 17,
-    "large_marker": 18,
-    "large_clamp": 19,
-    "extra_large_clamp": 20,
-    "foam_brick": 21,
-}
-
-#: Method name → (constructor, one-line description for the report).
-METHODS: dict[str, tuple[Callable[[], PoseMethod], str]] = {
-    "edgepose": (
-        EdgePoseMethod,
-        "codebook of 2,100 views; segmentation of the cloud (outliers, spill), encoder + IRR, "
-        "candidate translations aligned, "
-        "truncated-fit + free-space scoring, ICP of the best distinct candidates (settings below)",
-    ),
-    "edgepose-norefine": (
-        lambda: _named(EdgePoseMethod(refine=False), "edgepose-norefine"),
-        "the same without ICP (estimate(..., refine=False)): the verified codebook pose alone",
-    ),
-    "open3d": (
-        Open3DBaseline,
-        "Open3D FPFH + RANSAC (mutual filter, edge-length 0.9 + distance checks, 1-voxel gate, ≤100k "
-        "iterations, confidence 0.9999) + point-to-plane ICP on the mesh normals; voxel = diameter/25; "
-        "2 OpenMP threads",
-    ),
-    "opencv-ppf": (
-        OpenCVPPFBaseline,
-        "OpenCV ppf_match_3d (Drost PPF): sampling step 0.07, distance step 0.05, scene sample step 1/20, "
-        "scene distance 0.05; ICP on the 5 best-voted poses, lowest residual wins; model in mm",
-    ),
-    "opencv-ppf-fast": (
-        lambda: _named(OpenCVPPFBaseline(relative_sampling_step=0.1, scene_sample_step=1 / 10), "opencv-ppf-fast"),
-        "the same with sampling step 0.1, scene sample step 1/10 (trains in < 1 s)",
-    ),
-}
-
-DEFAULT_VIEWS = 20
-
-
-def _named(method: PoseMethod, name: str) -> PoseMethod:
-    method.name = name
-    return method
+#: Rendered views per object and stress level (``--views``).
+RENDERED_VIEWS = 20
 
 
 @dataclasses.dataclass
@@ -157,16 +92,14 @@ def load_sources(args: argparse.Namespace, parser: argparse.ArgumentParser) -> l
     if args.tune or args.meshes:
         if args.tune:
             paths = [CAD / n for n in TUNE_MESHES]
+            missing = [str(p) for p in paths if not p.is_file()]
+            if missing:
+                parser.error(f"no mesh file {missing}")
         else:
-            paths = []
-            for item in args.meshes.split(","):
-                path = Path(item.strip())
-                paths += (
-                    sorted(p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES) if path.is_dir() else [path]
-                )
-        missing = [str(p) for p in paths if not p.is_file()]
-        if missing:
-            parser.error(f"no mesh file {missing}")
+            try:
+                paths = find_meshes(item.strip() for item in args.meshes.split(","))
+            except CatalogError as e:
+                parser.error(str(e))
         sources = []
         for k, path in enumerate(paths):
             if args.tune:  # mixed units: scale to a diameter drawn per mesh, deterministic
@@ -178,9 +111,6 @@ def load_sources(args: argparse.Namespace, parser: argparse.ArgumentParser) -> l
                 mesh = read_mesh(path, scale=None)
             base = (TUNE_SEED_BASE if args.tune else 0) + args.seed * 100_000 + k * 1000
             sources.append(Source(path.stem, mesh, base, 100 + k))
-        names = [s.name for s in sources]
-        if len(set(names)) != len(names):
-            parser.error(f"mesh names must be unique: {names}")
         return sources
     every = sorted(p.stem for p in YCB.glob("*.ply"))
     names = [o.strip() for o in args.objects.split(",")] if args.objects else every
@@ -219,7 +149,15 @@ class PrepareOnce:
 
 
 def is_peer(method: str) -> bool:
+    """Every method but edgepose*: those ``--peer-views`` limits."""
     return not method.startswith("edgepose")
+
+
+def peer_notes(methods: list[str], peer_views: int | None) -> dict[str, str]:
+    """What the tables say after a peer's name when ``--peer-views`` limited its views."""
+    if peer_views is None:
+        return {}
+    return {m: f" (first {peer_views} views per object)" for m in methods if is_peer(m)}
 
 
 def run_all(
@@ -230,9 +168,7 @@ def run_all(
     instances = {}
     for name in methods:
         try:
-            method = METHODS[name][0]()
-            method.name = name
-            instances[name] = PrepareOnce(method)
+            instances[name] = PrepareOnce(create_method(name))
         except ImportError as e:
             print(f"{name}: skipped: {e} (install the 'baselines' extra)", flush=True)
     runs = {lv: {m: MethodRun(m, {}, []) for m in instances} for lv in levels}
@@ -285,82 +221,6 @@ def run_all(
             objects[level].append(dataclasses.replace(obj, clouds=[]))
     kept = {lv: [r for m, r in by_method.items() if m not in failed and r.views] for lv, by_method in runs.items()}
     return kept, objects
-
-
-# ----------------------------------------------------------------- summaries
-
-
-def tables(runs: list[MethodRun], objects: list[ObjectData]) -> tuple[str, str, str]:
-    """(overall table, per-object table, name of the speed reference)."""
-    summaries = {r.name: summarise(r.views) for r in runs}
-    if "edgepose" in summaries:
-        reference = "edgepose"
-    else:
-        reference = min(summaries, key=lambda n: summaries[n].median_ms)
-    ref_ms = summaries[reference].median_ms
-    overall = [
-        "| method | views | ADD-S < 0.1d | ADD(-S) < 0.1d | AUC ADD-S | AUC ADD(-S) | median ms | p90 ms "
-        f"| prepare s (median/object) | median latency / {reference} |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for r in runs:
-        s = summaries[r.name]
-        fails = f" ({s.failures} errors)" if s.failures else ""
-        overall.append(
-            f"| {r.name}{fails} | {s.views} | {s.add_s_pass:.1f} % | {s.add_or_s_pass:.1f} % | {s.auc_add_s:.1f} "
-            f"| {s.auc_add_or_s:.1f} | {s.median_ms:.0f} | {s.p90_ms:.0f} "
-            f"| {statistics.median(r.prepare_s.values()):.2f} | {s.median_ms / ref_ms:.2f}× |"
-        )
-    per_object = [
-        "| object | sym. | method | ADD-S < 0.1d | ADD(-S) < 0.1d | AUC ADD-S | AUC ADD(-S) "
-        "| median ms | p90 ms | prepare s |",
-        "| --- | :---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for obj in objects:
-        for r in runs:
-            s = summarise([v for v in r.views if v.object == obj.name])
-            per_object.append(
-                f"| {obj.name} | {'yes' if obj.symmetric else 'no'} | {r.name} | {s.add_s_pass:.0f} % "
-                f"| {s.add_or_s_pass:.0f} % | {s.auc_add_s:.1f} | {s.auc_add_or_s:.1f} | {s.median_ms:.0f} "
-                f"| {s.p90_ms:.0f} | {r.prepare_s[obj.name]:.2f} |"
-            )
-    return "\n".join(overall), "\n".join(per_object), reference
-
-
-def level_table(runs: list[MethodRun], peer_views: int | None) -> str:
-    """One stress level: accuracy and latency per method."""
-    lines = [
-        "| method | views | ADD(-S) < 0.1d | ADD-S < 0.1d | AUC ADD(-S) | median ms | p90 ms |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for r in runs:
-        s = summarise(r.views)
-        note = f" (first {peer_views} views per object)" if peer_views is not None and is_peer(r.name) else ""
-        fails = f" ({s.failures} errors)" if s.failures else ""
-        lines.append(
-            f"| {r.name}{fails}{note} | {s.views} | {s.add_or_s_pass:.1f} % | {s.add_s_pass:.1f} % "
-            f"| {s.auc_add_or_s:.1f} "
-            f"| {s.median_ms:.0f} | {s.p90_ms:.0f} |"
-        )
-    return "\n".join(lines)
-
-
-def stress_summary(runs: dict[str, list[MethodRun]], objects: dict[str, list[ObjectData]], methods: list[str]) -> str:
-    """Rows: stress levels with their achieved mean visible and spill
-    fractions (over every rendered view); columns: each method's ADD(-S)."""
-    lines = [
-        "| stress level | mean visible fraction | mean spill fraction | "
-        + " | ".join(f"{m} ADD(-S)" for m in methods)
-        + " |",
-        "| --- | ---: | ---: | " + " | ".join("---:" for _ in methods) + " |",
-    ]
-    for level, by_level in runs.items():
-        visible = np.nanmean([x for o in objects[level] for x in o.visible])
-        spill = np.mean([x for o in objects[level] for x in o.spill])
-        found = {r.name: summarise(r.views) for r in by_level}
-        cells = [f"{found[m].add_or_s_pass:.1f} % ({found[m].views})" if m in found else "–" for m in methods]
-        lines.append(f"| {level} | {visible:.2f} | {spill:.2f} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------- outputs
@@ -577,12 +437,15 @@ def write_markdown(
     extra_files: dict[str, Path],
 ) -> str:
     first = next(iter(runs))
-    overall, per_object, reference = tables(runs[first], objects[first])
+    reference = report.speed_reference(runs[first])
+    overall = report.overall_table(runs[first], reference)
+    per_object = report.per_object_table(runs[first], objects[first])
     objs = objects[first]
     symmetric = ", ".join(o.name for o in objs if o.symmetric) or "none"
-    described = "\n".join(f"- **{m}**: {METHODS[m][1]}" for m in methods)
+    described = "\n".join(f"- **{m}**: {METHODS[m].description}" for m in methods)
     levels = "\n".join(f"- `{lv}`: {STRESS_LEVELS[lv].description}" for lv in runs)
-    per_level = "\n\n".join(f"### Stress level `{lv}`\n\n{level_table(rs, args.peer_views)}" for lv, rs in runs.items())
+    notes = peer_notes(methods, args.peer_views)
+    per_level = "\n\n".join(f"### Stress level `{lv}`\n\n{report.level_table(rs, notes)}" for lv, rs in runs.items())
     if args.tune:
         kind = (
             f"{len(objs)} tuning objects (CAD parts from `../shared/data/train_shapes/cad/`, disjoint from the "
@@ -646,7 +509,7 @@ object for all levels. A method error counts as a miss with the identity pose.
 Visible fraction: visible object pixels / the object's pixels alone (occlusion); spill fraction: cloud
 points off the object / points on it (mask spill). Parentheses: views.
 
-{stress_summary(runs, objects, methods)}
+{report.stress_table(runs, objects, methods)}
 
 ![ADD(-S) per stress level]({extra_files["stress"].name})
 
@@ -690,7 +553,7 @@ Latency ratio: median latency of the method divided by that of **{reference}** (
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--views", type=int, default=DEFAULT_VIEWS, help="views per object and stress level")
+    parser.add_argument("--views", type=int, default=RENDERED_VIEWS, help="views per object and stress level")
     parser.add_argument(
         "--methods",
         default=None,
@@ -714,7 +577,7 @@ def main() -> None:
         methods = [m.strip() for m in args.methods.split(",") if m.strip()]
         unknown = [m for m in methods if m not in METHODS]
         if unknown:
-            parser.error(f"unknown methods {unknown}; choose from {list(METHODS)}")
+            parser.error(f"unknown methods {unknown}; choose from {', '.join(METHODS)}")
         if "edgepose" in methods and not available_edgepose():
             parser.error("this edgepose build has no build_codebook()/estimate() yet")
     else:
@@ -760,9 +623,9 @@ def main() -> None:
     wall = time.perf_counter() - started
     write_markdown(out, args, runs, objects, ran, (load_before, os.getloadavg()), wall, files)
     print()
-    print(stress_summary(runs, objects, ran))
+    print(report.stress_table(runs, objects, ran))
     for level, rs in runs.items():
-        print(f"\n{level}:\n{level_table(rs, args.peer_views)}")
+        print(f"\n{level}:\n{report.level_table(rs, peer_notes(ran, args.peer_views))}")
     print(f"\nwrote {out} and {', '.join(p.name for p in files.values())} ({wall / 60:.1f} min)")
 
 

@@ -42,6 +42,8 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
 DEFAULT_RETRIES = 2
 #: Ray's own re-runs of a task whose worker process or node died.
 DEFAULT_SYSTEM_RETRIES = 3
+#: CPUs each Ray task reserves (and threads it uses).
+DEFAULT_CPUS_PER_TASK = 1
 
 
 class CatalogError(EdgePoseError):
@@ -175,10 +177,12 @@ def evaluate_object(
     occluders: int = 0,
     retries: int = DEFAULT_RETRIES,
 ) -> ObjectResult:
-    """Render one view of a mesh per seed and run each pose method on them
+    """Render one view of a mesh per seed and run each pose method (names of
+    :data:`edgepose.eval.methods.METHODS`) on them
     (:func:`edgepose.eval.benchmark.run_method`); the result's ``runs`` hold
     the per-view scores. Never raises (see :func:`build_object`)."""
     from edgepose.eval.benchmark import load_object, run_method
+    from edgepose.eval.methods import create_method
 
     mesh = Path(mesh)
 
@@ -186,19 +190,10 @@ def evaluate_object(
         obj = load_object(mesh, seeds, symmetric=symmetric, occluders=occluders)
         runs = {}
         for name in methods:
-            method = eval_methods()[name]()
-            method.name = name
-            runs[name] = run_method(method, [obj])
+            runs[name] = run_method(create_method(name), [obj])
         return ObjectResult(mesh.stem, "evaluated", 0.0, views=len(seeds), runs=runs)
 
     return _attempt(mesh, job, retries)
-
-
-def eval_methods() -> dict[str, Callable[[], Any]]:
-    """Pose methods by name (the peers need the ``baselines`` extra)."""
-    from edgepose.eval.baselines import EdgePoseMethod, Open3DBaseline, OpenCVPPFBaseline
-
-    return {"edgepose": EdgePoseMethod, "open3d": Open3DBaseline, "opencv-ppf": OpenCVPPFBaseline}
 
 
 def _attempt(mesh: Path, job: Callable[[], ObjectResult], retries: int) -> ObjectResult:
@@ -249,7 +244,7 @@ class RayExecutor:
         self,
         address: str | None = None,
         *,
-        cpus_per_task: int = 1,
+        cpus_per_task: int = DEFAULT_CPUS_PER_TASK,
         num_cpus: int | None = None,
         system_retries: int = DEFAULT_SYSTEM_RETRIES,
     ) -> None:

@@ -21,6 +21,9 @@ MAX_EXTENT_DIAMETERS = 5.0
 #: A cloud spanning less than this fraction of the object's diameter holds no
 #: shape to match (all points coincide, or the wrong units, e.g. kilometres).
 MIN_EXTENT_DIAMETERS = 0.02
+#: Depth units per metre of millimetre depth images (16-bit PNGs, as BOP and
+#: most RGB-D sensors store them): ``cloud_from_depth``'s default.
+DEPTH_SCALE_MM = 1000.0
 #: Rows checked at a time: validation never copies a large cloud whole.
 _CHUNK_ROWS = 1 << 16
 #: A useful ``max_jump`` for ``cloud_from_depth`` on sensors with many
@@ -34,10 +37,13 @@ _CHUNK_ROWS = 1 << 16
 FLYING_PIXEL_JUMP = 0.01
 
 
-def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.ndarray:
+def as_cloud(
+    cloud: object, max_points: int | None = None, seed: int = 0, *, min_points: int = MIN_POINTS
+) -> np.ndarray:
     """(N, 3) float64 points of ``cloud`` (an array of any layout, float or
     integer, or anything with ``.points``, e.g. an Open3D point cloud), with
-    rows holding NaN, inf or coordinates beyond ``MAX_COORDINATE`` dropped.
+    rows holding NaN, inf or coordinates beyond ``MAX_COORDINATE`` dropped;
+    InvalidCloudError when fewer than ``min_points`` remain.
 
     With ``max_points``, a larger cloud is subsampled (seeded, so the same
     input gives the same points) *before* the float64 copy: memory stays
@@ -59,10 +65,10 @@ def as_cloud(cloud: object, max_points: int | None = None, seed: int = 0) -> np.
     masks = [_valid_rows(array[s : s + _CHUNK_ROWS]) for s in range(0, len(array), _CHUNK_ROWS)]
     counts = [int(mask.sum()) for mask in masks]
     valid = sum(counts)
-    if valid < MIN_POINTS:
+    if valid < min_points:
         raise InvalidCloudError(
             f"cloud has {valid} valid points of {len(array)} (rows with NaN, inf or coordinates beyond "
-            f"{MAX_COORDINATE:g} m are dropped); at least {MIN_POINTS} are needed"
+            f"{MAX_COORDINATE:g} m are dropped); at least {min_points} are needed"
         )
     if max_points is not None and valid > max_points:
         ranks = np.random.default_rng(seed).choice(valid, max_points, replace=False)
@@ -137,7 +143,7 @@ def cloud_from_depth(
     depth: np.ndarray,
     K: np.ndarray,
     mask: np.ndarray | None = None,
-    depth_scale: float = 1000.0,
+    depth_scale: float = DEPTH_SCALE_MM,
     *,
     max_jump: float | None = None,
     erode_px: int = 0,

@@ -7,7 +7,7 @@ poses are ``T_cam_obj`` (``p_cam = R @ p_obj + t``).
 
 from __future__ import annotations
 
-from edgepose.eval.bop import BopRow, read_bop_csv, write_bop_csv
+from edgepose.eval.bop import YCBV_OBJ_ID, BopRow, append_bop_csv, read_bop_csv, write_bop_csv
 from edgepose.eval.metrics import (
     YCB_SYMMETRIC,
     PoseErrors,
@@ -27,11 +27,13 @@ from edgepose.eval.render import (
     random_pose,
     render_view,
 )
-from edgepose.eval.scenes import STRESS_LEVELS, SceneView, Stress, render_scene
+from edgepose.eval.scenes import SceneView, render_scene
+from edgepose.eval.stress import STRESS_LEVELS, Stress
 
 __all__ = [
     "LINEMOD_CAMERA",
     "YCB_SYMMETRIC",
+    "YCBV_OBJ_ID",
     "BopRow",
     "Camera",
     "PoseErrors",
@@ -42,6 +44,7 @@ __all__ = [
     "add",
     "add_or_s",
     "add_s",
+    "append_bop_csv",
     "auc",
     "depth_to_cloud",
     "pose_errors",

@@ -31,8 +31,8 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import numpy as np
 
 import edgepose
-from edgepose.errors import InvalidCloudError
-from edgepose.model import StandardModel
+from edgepose.cloud import as_cloud
+from edgepose.model import DEFAULT_MODEL_POINTS, StandardModel
 
 if TYPE_CHECKING:
     import trimesh
@@ -97,7 +97,7 @@ class Open3DBaseline:
         self,
         *,
         voxel_ratio: float = 1 / 25,
-        model_points: int = 4096,
+        model_points: int = DEFAULT_MODEL_POINTS,
         ransac_distance: float = 1.0,
         icp_distance: float = 1.0,
         ransac_iterations: int = 100_000,
@@ -139,7 +139,7 @@ class Open3DBaseline:
             raise RuntimeError(f"{self.name}: call prepare(mesh) first")
         self.last = LastRun()
         t0 = time.perf_counter()
-        points = _clean_cloud(cloud)
+        points = _finite_points(cloud)
         scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         down = scene.voxel_down_sample(self.voxel)
         if len(down.points) < MIN_SCENE_POINTS:
@@ -222,7 +222,7 @@ class OpenCVPPFBaseline:
         relative_distance_step: float = 0.05,
         scene_sample_step: float = 1 / 20,
         scene_distance: float = 0.05,
-        model_points: int = 4096,
+        model_points: int = DEFAULT_MODEL_POINTS,
         normal_neighbours: int = 12,
         refine_top: int = 5,
         icp_iterations: int = 50,
@@ -263,7 +263,7 @@ class OpenCVPPFBaseline:
             raise RuntimeError(f"{self.name}: call prepare(mesh) first")
         self.last = LastRun()
         t0 = time.perf_counter()
-        points = _clean_cloud(cloud) * self.units_per_metre
+        points = _finite_points(cloud) * self.units_per_metre
         if len(points) < MIN_SCENE_POINTS:
             return NO_POSE.copy()
         _, scene = cv2.ppf_match_3d.computeNormalsPC3d(
@@ -324,12 +324,11 @@ def available_edgepose() -> bool:
     return hasattr(edgepose, "estimate") and hasattr(edgepose, "build_codebook")
 
 
-def _clean_cloud(cloud: np.ndarray) -> np.ndarray:
-    """(N, 3) float64 finite points, metres."""
-    points = np.asarray(getattr(cloud, "points", cloud), dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise InvalidCloudError(f"cloud must have shape (N, 3), got {points.shape}")
-    return np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
+def _finite_points(cloud: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 C-contiguous valid points of ``cloud`` (metres, camera
+    frame), as :func:`edgepose.cloud.as_cloud` reads them; however few remain
+    (a peer answers too few with NO_POSE rather than an error)."""
+    return np.ascontiguousarray(as_cloud(cloud, min_points=0))
 
 
 def _normalised(cloud: Any) -> Any:

@@ -19,7 +19,8 @@ import numpy as np
 
 from edgepose.eval.baselines import NO_POSE, PoseMethod
 from edgepose.eval.metrics import YCB_SYMMETRIC, PoseErrors, auc, pose_errors
-from edgepose.eval.scenes import STRESS_LEVELS, Stress, render_scene
+from edgepose.eval.scenes import render_scene
+from edgepose.eval.stress import STRESS_LEVELS, Stress
 
 if TYPE_CHECKING:
     import trimesh
@@ -42,7 +43,7 @@ class BenchObject:
     poses: list[np.ndarray]
     """Per view: (4, 4) true T_cam_obj."""
     stress: str = "clean"
-    """Name of the :class:`edgepose.eval.scenes.Stress` level the views were rendered at."""
+    """Name of the :class:`edgepose.eval.stress.Stress` level the views were rendered at."""
     visible: list[float] = field(default_factory=list)
     """Per view: achieved visible fraction of the object (1 when unoccluded)."""
     spill: list[float] = field(default_factory=list)
@@ -65,6 +66,8 @@ class ViewResult:
 
 @dataclass
 class MethodRun:
+    """Every view one method estimated."""
+
     name: str
     prepare_s: dict[str, float]
     """Seconds of per-object preparation (codebook build, training), by object name."""
@@ -188,6 +191,11 @@ def run_method(
             if progress is not None:
                 progress(obj, i + 1, done, run.prepare_s[obj.name])
     return run
+
+
+def merge_runs(name: str, runs: list[MethodRun]) -> MethodRun:
+    """One method's runs on different objects (e.g. one per catalogue job) as one run."""
+    return MethodRun(name, {o: s for r in runs for o, s in r.prepare_s.items()}, [v for r in runs for v in r.views])
 
 
 def timed_estimate(method: PoseMethod, cloud: np.ndarray) -> tuple[np.ndarray, float, str]:

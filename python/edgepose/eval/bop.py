@@ -16,6 +16,31 @@ import numpy as np
 
 BOP_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
+#: BOP object ids of the YCB-Video dataset (``ycbv``), by YCB mesh name.
+YCBV_OBJ_ID = {
+    "master_chef_can": 1,
+    "cracker_box": 2,
+    "sugar_box": 3,
+    "tomato_soup_can": 4,
+    "mustard_bottle": 5,
+    "tuna_fish_can": 6,
+    "pudding_box": 7,
+    "gelatin_box": 8,
+    "potted_meat_can": 9,
+    "banana": 10,
+    "pitcher_base": 11,
+    "bleach_cleanser": 12,
+    "bowl": 13,
+    "mug": 14,
+    "power_drill": 15,
+    "wood_block": 16,
+    "scissors": 17,
+    "large_marker": 18,
+    "large_clamp": 19,
+    "extra_large_clamp": 20,
+    "foam_brick": 21,
+}
+
 
 @dataclass(frozen=True, eq=False)
 class BopRow:
@@ -74,6 +99,13 @@ def read_bop_csv(path: str | os.PathLike) -> list[BopRow]:
         except ValueError as e:
             raise ValueError(f"{path}:{number}: malformed BOP row ({e}): {line!r}") from None
     return rows
+
+
+def append_bop_csv(path: str | os.PathLike, row: BopRow) -> None:
+    """Add ``row`` to a BOP results CSV, created with its header when missing
+    (``ValueError`` as :func:`read_bop_csv` for a malformed existing file)."""
+    rows = read_bop_csv(path) if Path(path).is_file() else []
+    write_bop_csv(path, [*rows, row])
 
 
 def _parse_row(line: str) -> BopRow:

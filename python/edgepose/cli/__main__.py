@@ -1,0 +1,5 @@
+"""``python -m edgepose.cli``."""
+
+from edgepose.cli import main
+
+main()

@@ -1,0 +1,142 @@
+"""``edgepose build`` and ``edgepose eval``: a catalogue of meshes, one
+object at a time, locally or as Ray tasks (see :mod:`edgepose.catalog`).
+"""
+
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from edgepose.catalog import DEFAULT_CPUS_PER_TASK, DEFAULT_RETRIES
+from edgepose.cli.app import (
+    Failure,
+    RayAddressOption,
+    RayOption,
+    ScaleOption,
+    executor_for,
+    exit_if_failed,
+    handle_errors,
+    stderr_console,
+    stdout_console,
+)
+from edgepose.eval.methods import METHODS
+from edgepose.model import DEFAULT_MODEL_POINTS
+from edgepose.settings import DEFAULT_SETTINGS
+from edgepose.views import DEFAULT_VIEWS
+
+
+def build(
+    meshes: Annotated[
+        list[Path], typer.Argument(help="Mesh files, or folders of them (.ply .obj .stl .off .glb .gltf).")
+    ],
+    out_dir: Annotated[Path, typer.Option("-o", "--out", help="Folder for the codebooks (<mesh name>.codebook).")],
+    views: Annotated[int, typer.Option(help="Viewpoints per codebook.")] = DEFAULT_VIEWS,
+    scale: ScaleOption = None,
+    points: Annotated[int, typer.Option(help="Surface points of the standard model.")] = DEFAULT_MODEL_POINTS,
+    force: Annotated[
+        bool, typer.Option("--force", help="Rebuild codebooks that are up to date too (e.g. after changing --scale).")
+    ] = False,
+    ray: RayOption = False,
+    ray_address: RayAddressOption = None,
+    cpus_per_task: Annotated[
+        int, typer.Option(help="With --ray: CPUs each object's task reserves and uses.")
+    ] = DEFAULT_CPUS_PER_TASK,
+    retries: Annotated[int, typer.Option(help="Attempts after the first for an object that fails.")] = DEFAULT_RETRIES,
+) -> None:
+    """Build a codebook for each mesh (seconds each): DIR/<mesh name>.codebook.
+
+    Codebooks already up to date (same mesh sha256, encoder, views and points) are skipped, so rerunning an
+    interrupted build resumes it. An object that fails is retried, then reported; the others are still built (exit
+    status 1 if any failed). --ray runs one Ray task per object on a cluster (dist extra).
+    """
+    from edgepose.catalog import BuildSettings, build_catalog, find_meshes
+    from edgepose.report import build_summary, build_table, progress
+
+    with handle_errors():
+        if views < DEFAULT_SETTINGS.k:  # estimate verifies k codebook views
+            raise Failure(f"--views must be at least {DEFAULT_SETTINGS.k}, got {views}")
+        files = find_meshes(meshes)
+        executor = executor_for(ray or ray_address is not None, ray_address, cpus_per_task)
+    started = time.perf_counter()
+    with progress(stderr_console(), "building", len(files)) as on_result, handle_errors():
+        results = build_catalog(
+            files,
+            out_dir,
+            BuildSettings(views, points, scale),
+            executor=executor,
+            force=force,
+            retries=retries,
+            on_result=on_result,
+        )
+    wall = time.perf_counter() - started
+    stdout_console().print(build_table(results, out_dir))
+    stderr_console().print(build_summary(results, wall, on_ray=executor is not None))
+    exit_if_failed(results)
+
+
+def evaluate(
+    meshes: Annotated[list[Path], typer.Argument(help="Mesh files (metres or detected mm), or folders of them.")],
+    views: Annotated[int, typer.Option(help="Rendered views per object.")] = 10,
+    seed: Annotated[int, typer.Option(help="Seed of the views (view i of object k: seed·100000 + k·1000 + i).")] = 0,
+    occluders: Annotated[int, typer.Option(help="Occluding rectangles per view.")] = 0,
+    methods: Annotated[
+        str, typer.Option(help=f"Comma-separated: {', '.join(METHODS)} (peers need the baselines extra).")
+    ] = "edgepose",
+    symmetric: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Object (file stem) judged with ADD-S in ADD(-S); repeatable. Default: the symmetric YCB objects."
+        ),
+    ] = None,
+    ray: RayOption = False,
+    ray_address: RayAddressOption = None,
+    cpus_per_task: Annotated[
+        int, typer.Option(help="With --ray: CPUs each object's task reserves.")
+    ] = DEFAULT_CPUS_PER_TASK,
+) -> None:
+    """Benchmark on rendered depth views of meshes, with known poses.
+
+    Prints per object: ADD-S and ADD(-S) below 0.1 × diameter, their AUC (0–10 cm), the median estimate latency and
+    the preparation (codebook build) time. --ray evaluates one object per Ray task (accuracy is the same; latencies
+    then include the tasks' competition for the CPUs).
+    """
+    from edgepose.catalog import evaluate_catalog, find_meshes
+    from edgepose.eval.benchmark import merge_runs
+    from edgepose.eval.methods import create_method, parse_methods
+    from edgepose.eval.metrics import YCB_SYMMETRIC
+    from edgepose.report import eval_table, progress
+
+    with handle_errors():
+        try:
+            chosen = parse_methods(methods)
+        except ValueError as e:
+            raise Failure(str(e)) from None
+        if views < 1:
+            raise Failure(f"--views must be at least 1, got {views}")
+        for name in chosen:
+            try:
+                create_method(name)
+            except ImportError as e:
+                raise Failure(f"{name} needs the baselines extra ({e})") from None
+        files = find_meshes(meshes)
+        executor = executor_for(ray or ray_address is not None, ray_address, cpus_per_task)
+    with progress(stderr_console(), "evaluating", len(files)) as on_result, handle_errors():
+        results = evaluate_catalog(
+            files,
+            lambda k: [seed * 100_000 + k * 1000 + i for i in range(views)],
+            chosen,
+            symmetric=lambda stem: stem in (YCB_SYMMETRIC if symmetric is None else symmetric),
+            occluders=occluders,
+            executor=executor,
+            on_result=on_result,
+        )
+    evaluated = [r for r in results if not r.failed]
+    if evaluated:
+        runs = [merge_runs(name, [r.runs[name] for r in evaluated]) for name in chosen]
+        title = (
+            f"{views} rendered views per object (seed {seed}, {occluders} occluders); correct = error < 0.1 × diameter"
+        )
+        symmetric_names = set(YCB_SYMMETRIC if symmetric is None else symmetric)
+        stdout_console().print(eval_table(runs, [r.name for r in evaluated], symmetric_names, title))
+    exit_if_failed(results)
