@@ -39,7 +39,14 @@ def test_refinement_improves_the_fit(drill):
     fine = edgepose.estimate(view.cloud, codebook)
     assert not coarse.refined and fine.refined
     assert errors(fine, view, codebook).add <= errors(coarse, view, codebook).add + 1e-4
-    assert set(fine.timings) == {"prepare", "encode", "search", "irr", "verify", "refine", "total"}
+    assert set(fine.timings) == {
+        "prepare_query",
+        "retrieve",
+        "candidate_poses",
+        "score_poses",
+        "refine_hypotheses",
+        "total",
+    }
     assert len(fine.candidates) == 16 and fine.view in fine.candidates
 
 

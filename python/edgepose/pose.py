@@ -54,7 +54,8 @@ class Pose:
     candidate_fit: np.ndarray
     """(K,) truncated keypoint distance of each candidate pose, metres."""
     timings: dict = field(default_factory=dict)
-    """Seconds per stage: prepare, encode, search, irr, verify, refine, total."""
+    """Seconds per stage, named as the stage functions: prepare_query, retrieve,
+    candidate_poses, score_poses, refine_hypotheses, and the total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
     points near the model)."""
@@ -130,19 +131,15 @@ def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings 
     return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
 
 
-def retrieve(
-    query: Query, codebook: Codebook, encoder: Encoder, k: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """Stage 2: ``(candidates (k,), similarities (k,), in-plane angles (k,) radians, timings)``."""
-    t0 = time.perf_counter()
+def retrieve(query: Query, codebook: Codebook, encoder: Encoder, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stage 2: the map's code and its ``k`` most similar codebook views, with
+    the in-plane angle to each: ``(candidates (k,), similarities (k,), angles
+    (k,) radians)``."""
     code, spectrum = encoder.encode(query.map[None])
-    t1 = time.perf_counter()
     candidates, similarity = _core.top_k(codebook.codes, code[0], k)
     candidates = candidates.astype(np.intp)
-    t2 = time.perf_counter()
     angles = encoder.in_plane_angles(spectrum[0], codebook.spectra[candidates]).astype(np.float64)
-    t3 = time.perf_counter()
-    return candidates, similarity, angles, {"encode": t1 - t0, "search": t2 - t1, "irr": t3 - t2}
+    return candidates, similarity, angles
 
 
 def candidate_poses(
@@ -309,9 +306,10 @@ def estimate(
     t0 = time.perf_counter()
     query = prepare_query(cloud, codebook, settings)
     t1 = time.perf_counter()
-    candidates, similarity, angles, retrieve_timings = retrieve(query, codebook, encoder, settings.k)
+    candidates, similarity, angles = retrieve(query, codebook, encoder, settings.k)
     t2 = time.perf_counter()
     rotations, translations = candidate_poses(query, codebook, candidates, angles, settings)
+    t3 = time.perf_counter()
     candidate_scores = score_poses(
         query,
         codebook,
@@ -330,10 +328,10 @@ def estimate(
         PoseScores(*(s[chosen : chosen + 1] for s in candidate_scores)),
         False,
     )
-    t3 = time.perf_counter()
+    t4 = time.perf_counter()
     if refine:
         result = refine_hypotheses(query, codebook, rotations, translations, candidate_scores.cost, settings) or result
-    t4 = time.perf_counter()
+    t5 = time.perf_counter()
 
     # Model frame = object (mesh) frame shifted by the model centre.
     t_obj = result.t - result.R @ model.centre
@@ -345,7 +343,14 @@ def estimate(
         view=int(candidates[result.candidate]),
         candidates=candidates,
         candidate_fit=candidate_scores.fit,
-        timings={"prepare": t1 - t0, **retrieve_timings, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0},
+        timings={
+            "prepare_query": t1 - t0,
+            "retrieve": t2 - t1,
+            "candidate_poses": t3 - t2,
+            "score_poses": t4 - t3,
+            "refine_hypotheses": t5 - t4,
+            "total": t5 - t0,
+        },
         refined=result.refined,
         inlier_fraction=float(result.scores.inlier_fraction[0]),
         free_space_violation=float(result.scores.free_space_violation[0]),
