@@ -4,7 +4,7 @@
 
 Queries are rendered depth views (edgepose.eval.render_view: 1 mm noise,
 1 mm quantisation, 2 % dropout, random pose 0.45–0.9 m away), made ready and
-searched by ``estimate``'s own stages (``edgepose.pose.prepare_query`` and
+searched by ``estimate``'s own stages (``edgepose.stages.prepare_query`` and
 ``retrieve``, default settings). For each query:
 
 * retrieval: the top-K codes (cosine) over the 2,100-view codebook succeed when
@@ -29,7 +29,7 @@ import numpy as np
 from edgepose.encoder import MODELS_DIR, Encoder
 from edgepose.eval import YCB_SYMMETRIC, add_s, render_view
 from edgepose.model import read_mesh
-from edgepose.pose import prepare_query, retrieve
+from edgepose.stages import prepare_query, retrieve
 from edgepose.views import rotation_about_z
 
 YCB = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycb"

@@ -75,7 +75,7 @@ def test_turned_over_poses_of_a_near_symmetric_object_are_told_apart(ycb_dir):
 
 
 def test_distinct_hypotheses_skip_near_duplicates():
-    from edgepose.pose import distinct_hypotheses
+    from edgepose.stages import distinct_hypotheses
 
     def rz(deg):
         a = np.radians(deg)
@@ -185,3 +185,36 @@ def test_a_millimetre_cloud_is_reported(drill):
     cloud_mm = render_view(mesh, seed=3).cloud * 1000.0
     with pytest.raises(edgepose.InvalidCloudError, match="millimetres"):
         edgepose.estimate(cloud_mm, codebook)
+
+
+def test_a_doubtful_pose_gets_a_second_wider_search_that_never_does_worse(drill):
+    mesh, codebook = drill
+    settings = edgepose.EstimateSettings()
+    for seed in (3, 100):
+        view = render_view(mesh, seed=seed)
+        first = edgepose.estimate(view.cloud, codebook, settings=settings.with_(retry_k=0))
+        # A bar no pose clears: every estimate is doubtful and searched again.
+        both = edgepose.estimate(view.cloud, codebook, settings=settings.with_(retry_below_inlier_fraction=1.01))
+        assert first.searches == 1 and len(first.candidates) == 16
+        assert both.searches == 2 and len(both.candidates) == settings.retry_k
+        np.testing.assert_array_equal(both.candidates[:16], first.candidates)  # the same ranking, extended
+        net = lambda p: p.inlier_fraction - p.free_space_violation  # noqa: E731
+        assert net(both) >= net(first) - 1e-12
+        assert errors(both, view, codebook).add < 0.1 * codebook.model.diameter
+
+
+def test_doubt_is_a_low_inlier_fraction_free_space_violations_or_no_refinement():
+    from edgepose.pose import doubtful, explains_more
+    from edgepose.stages import PoseScores, Refined
+
+    def refined(inliers: float, violation: float, was_refined: bool = True) -> Refined:
+        one = lambda v: np.array([v])  # noqa: E731
+        return Refined(
+            0, np.eye(3), np.zeros(3), PoseScores(one(0.001), one(inliers), one(violation), one(0.1)), was_refined
+        )
+
+    assert not doubtful(refined(0.99, 0.01))
+    assert doubtful(refined(0.90, 0.01)) and doubtful(refined(0.99, 0.05)) and doubtful(refined(0.99, 0.0, False))
+    assert explains_more(refined(0.97, 0.0), refined(0.99, 0.05))
+    assert not explains_more(refined(0.90, 0.0), refined(0.95, 0.01))
+    assert explains_more(refined(0.5, 0.2), refined(0.99, 0.0, False))  # refined beats unrefined

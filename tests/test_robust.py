@@ -11,7 +11,7 @@ import pytest
 from edgepose import _core
 from edgepose.cloud import FLYING_PIXEL_JUMP, depth_discontinuities, dilate, erode
 from edgepose.eval import pose_errors, render_scene
-from edgepose.pose import near_the_cloud, prepare_query
+from edgepose.stages import near_the_cloud, prepare_query
 
 K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
 

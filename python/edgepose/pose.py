@@ -1,17 +1,7 @@
 """``estimate(cloud, codebook)``: the 6D pose of an object from its segmented
-depth cloud (../shared/DESIGN.md, step 7), as five named stages:
-
-1. :func:`prepare_query` — keep the points that are the object (outliers,
-   flying pixels and background a spilled mask picked up are dropped), turn
-   the cloud so its centroid ray is the optical axis, centre, scale and
-   resample it to a map;
-2. :func:`retrieve` — encode the map, cosine top-K over the codebook's
-   codes (Rust), the in-plane angle of each candidate (IRR head);
-3. :func:`candidate_poses` — each candidate view and angle as a pose;
-4. :func:`score_poses` — how well each pose explains the view: truncated
-   keypoint distances to the model and free-space violations (Rust);
-5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
-   distinct candidates, scored again; the best one is polished.
+depth cloud, by the five stages of :mod:`edgepose.stages` (prepare the query,
+retrieve codebook views, pose them, score them, refine the best hypotheses);
+a doubtful pose gets a second, wider search (:func:`doubtful`).
 
 Every tuning value lives in :class:`edgepose.settings.EstimateSettings`.
 """
@@ -24,13 +14,19 @@ from typing import NamedTuple
 
 import numpy as np
 
-from edgepose import _core
-from edgepose.cloud import MIN_POINTS, clean_cloud
 from edgepose.codebook import Codebook, CodebookError
 from edgepose.encoder import Encoder, default_encoder
-from edgepose.maps import normalize_to_map
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
-from edgepose.views import ray_alignment, rotation_about_z
+from edgepose.stages import (
+    PoseScores,
+    Query,
+    Refined,
+    candidate_poses,
+    prepare_query,
+    refine_hypotheses,
+    retrieve,
+    score_poses,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,6 +64,9 @@ class Pose:
     kept_points: int = 0
     """Observed points that :func:`prepare_query` kept as the object (of at
     most ``settings.max_cloud_points``)."""
+    searches: int = 1
+    """1, or 2 when the first pose was doubtful and a wider search followed
+    (``settings.retry_k`` candidates; see :func:`doubtful`)."""
 
     @property
     def matrix(self) -> np.ndarray:
@@ -75,199 +74,6 @@ class Pose:
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = self.R, self.t
         return T
-
-
-@dataclass(frozen=True, eq=False)
-class Query:
-    """An observed cloud made ready for the codebook (stage 1)."""
-
-    points: np.ndarray
-    """(N, 3) float32 camera-frame points kept as the object, metres."""
-    spacing: float
-    """Median distance between neighbouring points, metres (sizes the free-space grid)."""
-    centroid: np.ndarray
-    """(3,) float64 centroid of ``points``."""
-    r_corr: np.ndarray
-    """(3, 3) viewpoint correction: camera frame → frame whose +z is the centroid ray."""
-    map: np.ndarray
-    """(M, 3) float32 the corrected, centred, scaled and resampled map."""
-    keypoints: np.ndarray
-    """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
-
-
-class PoseScores(NamedTuple):
-    """Stage 4's terms per pose (see ``rust/src/scoring.rs``); lower ``cost`` is better."""
-
-    fit: np.ndarray
-    inlier_fraction: np.ndarray
-    free_space_violation: np.ndarray
-    cost: np.ndarray
-    """fit / inlier distance + free_space_weight × free_space_violation."""
-
-
-def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> Query:
-    """Stage 1: the object's points of ``cloud`` (camera frame, metres) and its map."""
-    model = codebook.model
-    points = clean_cloud(cloud, model.diameter, settings.max_cloud_points).astype(np.float32)
-    spacing = 0.0
-    if settings.segment:
-        keep, spacing = _core.segment_object(
-            points,
-            model.diameter,
-            settings.shadow_spacings,
-            settings.max_shadowed_fraction,
-            settings.min_component_fraction,
-            settings.max_component_offset,
-        )
-        if keep.sum() >= MIN_POINTS:
-            points = np.ascontiguousarray(points[keep])
-    centroid = points.mean(axis=0, dtype=np.float64)
-    r_corr = ray_alignment(centroid)
-    corrected = ((points - centroid) @ r_corr.T).astype(np.float32)
-    query_map, _ = normalize_to_map(corrected, model.scale, codebook.map_points)
-    keypoints = (query_map[: settings.keypoints] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(
-        np.float32
-    )
-    return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
-
-
-def retrieve(query: Query, codebook: Codebook, encoder: Encoder, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stage 2: the map's code and its ``k`` most similar codebook views, with
-    the in-plane angle to each: ``(candidates (k,), similarities (k,), angles
-    (k,) radians)``."""
-    code, spectrum = encoder.encode(query.map[None])
-    candidates, similarity = _core.top_k(codebook.codes, code[0], k)
-    candidates = candidates.astype(np.intp)
-    angles = encoder.in_plane_angles(spectrum[0], codebook.spectra[candidates]).astype(np.float64)
-    return candidates, similarity, angles
-
-
-def candidate_poses(
-    query: Query,
-    codebook: Codebook,
-    candidates: np.ndarray,
-    angles: np.ndarray,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Stage 3: model frame → camera poses ``(R (k, 3, 3), t (k, 3))``:
-    ``R = R_corrᵀ · Rz(θ) · R_view``; the translation from the centroids,
-    then moved so the keypoints land on the model."""
-    rotations = query.r_corr.T @ rotation_about_z(angles) @ codebook.viewpoints.rotations[candidates]
-    translations = query.centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
-    if settings.align_iterations > 0:
-        translations = codebook.index.align_translations(
-            query.keypoints,
-            rotations,
-            translations,
-            settings.align_iterations,
-            settings.candidate_inlier_distance * codebook.model.diameter,
-        )
-    return rotations, translations
-
-
-def score_poses(
-    query: Query,
-    codebook: Codebook,
-    observed: np.ndarray,
-    rotations: np.ndarray,
-    translations: np.ndarray,
-    inlier_distance: float,
-    free_space_weight: float,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-) -> PoseScores:
-    """Stage 4: the terms of each pose against the ``observed`` points (camera
-    frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
-    d = codebook.model.diameter
-    fit, inliers, violation = codebook.index.score(
-        observed,
-        query.points,
-        query.spacing,
-        np.ascontiguousarray(rotations),
-        np.ascontiguousarray(translations),
-        inlier_distance,
-        settings.free_space_tolerance * d,
-        settings.free_space_model_stride,
-    )
-    cost = fit / inlier_distance + free_space_weight * violation
-    return PoseScores(fit, inliers, violation, cost)
-
-
-class Refined(NamedTuple):
-    """Stage 5's outcome: the chosen pose (model frame → camera) and its terms."""
-
-    candidate: int
-    """Which candidate it started from."""
-    R: np.ndarray
-    t: np.ndarray
-    scores: PoseScores
-    """The chosen pose's terms (arrays of one)."""
-    refined: bool
-
-
-def refine_hypotheses(
-    query: Query,
-    codebook: Codebook,
-    rotations: np.ndarray,
-    translations: np.ndarray,
-    candidate_cost: np.ndarray,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-) -> Refined | None:
-    """Stage 5: coarse ICP from the ``settings.hypotheses`` best distinct
-    candidates, each scored again. Hypotheses that explain nearly as many
-    points as the best and violate free space little more than the least
-    violating compete; the lowest ICP RMSE wins and is polished by a longer
-    ICP. None when no ICP found enough points."""
-    d = codebook.model.diameter
-    coarse = _subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
-    starts = distinct_hypotheses(
-        rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
-    )
-    max_distance = settings.icp_max_distance * d
-    icp = codebook.index.refine(
-        coarse, rotations[starts], translations[starts], settings.hypothesis_iterations, max_distance
-    )
-    hyp_R, hyp_t, inliers, rmse = icp.rotations, icp.translations, icp.inliers, icp.rmse
-    usable = (
-        np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
-    )
-    if not usable.any():
-        return None
-    inlier_distance = settings.hypothesis_inlier_distance * d
-    scores = score_poses(query, codebook, coarse, hyp_R, hyp_t, inlier_distance, 0.0, settings)
-    explains = scores.inlier_fraction >= settings.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
-    free = (
-        scores.free_space_violation <= scores.free_space_violation[usable].min() + settings.hypothesis_free_space_margin
-    )
-    competing = usable & explains & free
-    pick = int(np.argmin(np.where(competing, rmse, np.inf)))
-    best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
-    if settings.icp_iterations > 0:
-        fine_icp = codebook.index.refine(
-            _subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
-            hyp_R[pick : pick + 1],
-            hyp_t[pick : pick + 1],
-            settings.icp_iterations,
-            max_distance,
-        )
-        fine_R, fine_t = fine_icp.rotations, fine_icp.translations
-        if (
-            fine_icp.inliers[0] >= settings.min_icp_inliers
-            and np.isfinite(fine_icp.rmse[0])
-            and near_the_cloud(query, codebook, fine_t, settings)[0]
-        ):
-            fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
-            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True)
-    return best
-
-
-def near_the_cloud(
-    query: Query, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
-) -> np.ndarray:
-    """(H,) bool: whether each pose (model frame → camera, ``translations``
-    (H, 3) metres: where the model's centre lands) keeps the model's centre
-    within ``settings.max_centre_offset`` model radii of the observed centroid."""
-    radius = 1.0 / codebook.model.scale
-    return np.linalg.norm(translations - query.centroid, axis=1) <= settings.max_centre_offset * radius
 
 
 def estimate(
@@ -302,37 +108,53 @@ def estimate(
         raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {settings.k}")
     if not 0 <= settings.icp_iterations <= MAX_ICP_ITERATIONS:
         raise ValueError(f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {settings.icp_iterations}")
-    model = codebook.model
-    t0 = time.perf_counter()
-    query = prepare_query(cloud, codebook, settings)
-    t1 = time.perf_counter()
-    candidates, similarity, angles = retrieve(query, codebook, encoder, settings.k)
-    t2 = time.perf_counter()
-    rotations, translations = candidate_poses(query, codebook, candidates, angles, settings)
-    t3 = time.perf_counter()
-    candidate_scores = score_poses(
-        query,
-        codebook,
-        query.keypoints,
-        rotations,
-        translations,
-        settings.candidate_inlier_distance * model.diameter,
-        settings.candidate_free_space_weight,
-        settings,
-    )
-    chosen = int(np.argmin(candidate_scores.cost))
-    result = Refined(
-        chosen,
-        rotations[chosen],
-        translations[chosen],
-        PoseScores(*(s[chosen : chosen + 1] for s in candidate_scores)),
-        False,
-    )
-    t4 = time.perf_counter()
-    if refine:
-        result = refine_hypotheses(query, codebook, rotations, translations, candidate_scores.cost, settings) or result
-    t5 = time.perf_counter()
+    timings: dict[str, float] = {}
+    clock = t0 = time.perf_counter()
 
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[stage] = timings.get(stage, 0.0) + now - clock
+        clock = now
+
+    def posed(views: np.ndarray, angles: np.ndarray) -> Candidates:
+        """Stages 3 and 4 for codebook ``views`` and their in-plane ``angles``."""
+        rotations, translations = candidate_poses(query, codebook, views, angles, settings)
+        lap("candidate_poses")
+        scores = score_poses(
+            query,
+            codebook,
+            query.keypoints,
+            rotations,
+            translations,
+            settings.candidate_inlier_distance * codebook.model.diameter,
+            settings.candidate_free_space_weight,
+            settings,
+        )
+        lap("score_poses")
+        return Candidates(rotations, translations, scores)
+
+    query = prepare_query(cloud, codebook, settings)
+    lap("prepare_query")
+    # One retrieval serves both searches: the second one's extra views are
+    # the next ones down the same ranking.
+    retry_k = min(settings.retry_k, len(codebook)) if refine else 0
+    views, similarity, angles = retrieve(query, codebook, encoder, max(settings.k, retry_k))
+    lap("retrieve")
+    k = settings.k
+    found = posed(views[:k], angles[:k])
+    result = best_pose(query, codebook, found, refine, settings)
+    lap("refine_hypotheses")
+    searches = 1
+    if retry_k > k and doubtful(result, settings):
+        found = found.extended(posed(views[k:retry_k], angles[k:retry_k]))
+        wider = best_pose(query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses))
+        lap("refine_hypotheses")
+        searches = 2
+        if explains_more(wider, result):
+            result = wider
+    timings["total"] = time.perf_counter() - t0
+    model = codebook.model
     # Model frame = object (mesh) frame shifted by the model centre.
     t_obj = result.t - result.R @ model.centre
     return Pose(
@@ -340,17 +162,11 @@ def estimate(
         t=t_obj,
         score=float(similarity[result.candidate]),
         fit=float(result.scores.fit[0]),
-        view=int(candidates[result.candidate]),
-        candidates=candidates,
-        candidate_fit=candidate_scores.fit,
-        timings={
-            "prepare_query": t1 - t0,
-            "retrieve": t2 - t1,
-            "candidate_poses": t3 - t2,
-            "score_poses": t4 - t3,
-            "refine_hypotheses": t5 - t4,
-            "total": t5 - t0,
-        },
+        view=int(views[result.candidate]),
+        candidates=views[: len(found.rotations)],
+        candidate_fit=found.scores.fit,
+        timings=timings,
+        searches=searches,
         refined=result.refined,
         inlier_fraction=float(result.scores.inlier_fraction[0]),
         free_space_violation=float(result.scores.free_space_violation[0]),
@@ -358,22 +174,61 @@ def estimate(
     )
 
 
-def _subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
-    """At most ``count`` of ``points``, drawn without replacement (seeded), C-contiguous."""
-    if len(points) > count:
-        points = points[np.random.default_rng(seed).choice(len(points), count, replace=False)]
-    return np.ascontiguousarray(points)
+class Candidates(NamedTuple):
+    """Candidate poses (model frame → camera) and their stage-4 scores."""
+
+    rotations: np.ndarray
+    """(C, 3, 3)."""
+    translations: np.ndarray
+    """(C, 3), metres."""
+    scores: PoseScores
+
+    def extended(self, more: Candidates) -> Candidates:
+        """These followed by ``more`` (each candidate's terms are its own)."""
+        return Candidates(
+            np.concatenate([self.rotations, more.rotations]),
+            np.concatenate([self.translations, more.translations]),
+            PoseScores(*(np.concatenate([a, b]) for a, b in zip(self.scores, more.scores))),
+        )
 
 
-def distinct_hypotheses(rotations: np.ndarray, order: np.ndarray, count: int, min_angle_deg: float) -> np.ndarray:
-    """Indices of up to ``count`` of ``rotations`` ((K, 3, 3)), taken in
-    ``order``, each at least ``min_angle_deg`` away from those taken before."""
-    cos_min = np.cos(np.radians(min_angle_deg))
-    kept: list[int] = []
-    for j in order:
-        # cos of the angle between two rotations: (trace(Raᵀ Rb) − 1) / 2.
-        if all((np.einsum("ij,ij->", rotations[j], rotations[k]) - 1) / 2 < cos_min for k in kept):
-            kept.append(int(j))
-            if len(kept) == count:
-                break
-    return np.asarray(kept, dtype=np.intp)
+def best_pose(
+    query: Query, codebook: Codebook, found: Candidates, refine: bool, settings: EstimateSettings = DEFAULT_SETTINGS
+) -> Refined:
+    """The lowest-cost candidate, or (``refine``) the winner of stage 5 when
+    its ICP found enough points."""
+    chosen = int(np.argmin(found.scores.cost))
+    best = Refined(
+        chosen,
+        found.rotations[chosen],
+        found.translations[chosen],
+        PoseScores(*(s[chosen : chosen + 1] for s in found.scores)),
+        False,
+    )
+    if refine:
+        best = (
+            refine_hypotheses(query, codebook, found.rotations, found.translations, found.scores.cost, settings) or best
+        )
+    return best
+
+
+def doubtful(result: Refined, settings: EstimateSettings = DEFAULT_SETTINGS) -> bool:
+    """Whether a search's pose is worth a second, wider search: not refined,
+    or explaining too few observed points, or contradicting free space."""
+    return (
+        not result.refined
+        or result.scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
+        or result.scores.free_space_violation[0] > settings.retry_above_free_space
+    )
+
+
+def explains_more(candidate: Refined, incumbent: Refined) -> bool:
+    """Whether ``candidate`` beats ``incumbent``: refined where it is not, or
+    a larger share of explained points net of free-space violations."""
+    if candidate.refined != incumbent.refined:
+        return candidate.refined
+
+    def net(r: Refined) -> float:
+        return float(r.scores.inlier_fraction[0] - r.scores.free_space_violation[0])
+
+    return net(candidate) > net(incumbent)

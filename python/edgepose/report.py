@@ -115,6 +115,7 @@ def pose_json(pose: Pose, points: int) -> dict[str, Any]:
         "free_space_violation": pose.free_space_violation,
         "points": int(points),
         "kept_points": pose.kept_points,
+        "searches": pose.searches,
         "timings": pose.timings,
     }
 

@@ -77,6 +77,21 @@ class EstimateSettings:
     """... and violate free space by at most this much more than the least
     violating one; among those the lowest ICP RMSE wins (a turned-over
     near-symmetric object fits a few per cent worse)."""
+    # --- a second, wider search when the first pose is doubtful
+    retry_below_inlier_fraction: float = 0.95
+    """A refined pose explaining fewer of the observed points than this
+    (0–1) is doubtful: on the tuning shapes 90 % of correct poses explain
+    ≥ 0.955 of them, whatever the occlusion, most wrong ones far fewer ..."""
+    retry_above_free_space: float = 0.03
+    """... as is one violating free space more than this (correct: ≤ 0.02
+    in 90 %). A doubtful pose is searched again with ``retry_k`` candidates
+    and ``retry_hypotheses`` hypotheses (occlusion and spill push the right
+    view down the cosine ranking), and the result that explains more points
+    net of free-space violations wins. Trusted poses cost nothing extra."""
+    retry_k: int = 64
+    """Candidates of the second search (0 or ≤ k: no second search)."""
+    retry_hypotheses: int = 5
+    """Hypotheses refined by the second search."""
     max_centre_offset: float = 1.25
     """× the model's radius (its farthest point from its centre). Every
     observed point of the object lies within one radius of the model's

@@ -1,0 +1,248 @@
+"""The five named stages of :func:`edgepose.estimate` (../shared/DESIGN.md,
+step 7), each reusable on its own (the exporter's evaluation, benchmarks):
+
+1. :func:`prepare_query` — keep the points that are the object (outliers,
+   flying pixels and background a spilled mask picked up are dropped), turn
+   the cloud so its centroid ray is the optical axis, centre, scale and
+   resample it to a map;
+2. :func:`retrieve` — encode the map, cosine top-K over the codebook's
+   codes (Rust), the in-plane angle of each candidate (IRR head);
+3. :func:`candidate_poses` — each candidate view and angle as a pose;
+4. :func:`score_poses` — how well each pose explains the view: truncated
+   keypoint distances to the model and free-space violations (Rust);
+5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
+   distinct candidates, scored again; the best one is polished.
+
+Poses are model frame → camera (the model frame is the mesh frame shifted by
+the model's centre); units are metres. Every tuning value lives in
+:class:`edgepose.settings.EstimateSettings`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from edgepose import _core
+from edgepose.cloud import MIN_POINTS, clean_cloud
+from edgepose.codebook import Codebook
+from edgepose.encoder import Encoder
+from edgepose.maps import normalize_to_map
+from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
+from edgepose.views import ray_alignment, rotation_about_z
+
+
+@dataclass(frozen=True, eq=False)
+class Query:
+    """An observed cloud made ready for the codebook (stage 1)."""
+
+    points: np.ndarray
+    """(N, 3) float32 camera-frame points kept as the object, metres."""
+    spacing: float
+    """Median distance between neighbouring points, metres (sizes the free-space grid)."""
+    centroid: np.ndarray
+    """(3,) float64 centroid of ``points``."""
+    r_corr: np.ndarray
+    """(3, 3) viewpoint correction: camera frame → frame whose +z is the centroid ray."""
+    map: np.ndarray
+    """(M, 3) float32 the corrected, centred, scaled and resampled map."""
+    keypoints: np.ndarray
+    """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
+
+
+class PoseScores(NamedTuple):
+    """Stage 4's terms per pose (see ``rust/src/scoring.rs``); lower ``cost`` is better."""
+
+    fit: np.ndarray
+    inlier_fraction: np.ndarray
+    free_space_violation: np.ndarray
+    cost: np.ndarray
+    """fit / inlier distance + free_space_weight × free_space_violation."""
+
+
+def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> Query:
+    """Stage 1: the object's points of ``cloud`` (camera frame, metres) and its map."""
+    model = codebook.model
+    points = clean_cloud(cloud, model.diameter, settings.max_cloud_points).astype(np.float32)
+    spacing = 0.0
+    if settings.segment:
+        keep, spacing = _core.segment_object(
+            points,
+            model.diameter,
+            settings.shadow_spacings,
+            settings.max_shadowed_fraction,
+            settings.min_component_fraction,
+            settings.max_component_offset,
+        )
+        if keep.sum() >= MIN_POINTS:
+            points = np.ascontiguousarray(points[keep])
+    centroid = points.mean(axis=0, dtype=np.float64)
+    r_corr = ray_alignment(centroid)
+    corrected = ((points - centroid) @ r_corr.T).astype(np.float32)
+    query_map, _ = normalize_to_map(corrected, model.scale, codebook.map_points)
+    keypoints = (query_map[: settings.keypoints] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(
+        np.float32
+    )
+    return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
+
+
+def retrieve(query: Query, codebook: Codebook, encoder: Encoder, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stage 2: the map's code and its ``k`` most similar codebook views, with
+    the in-plane angle to each: ``(candidates (k,), similarities (k,), angles
+    (k,) radians)``."""
+    code, spectrum = encoder.encode(query.map[None])
+    candidates, similarity = _core.top_k(codebook.codes, code[0], k)
+    candidates = candidates.astype(np.intp)
+    angles = encoder.in_plane_angles(spectrum[0], codebook.spectra[candidates]).astype(np.float64)
+    return candidates, similarity, angles
+
+
+def candidate_poses(
+    query: Query,
+    codebook: Codebook,
+    candidates: np.ndarray,
+    angles: np.ndarray,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 3: model frame → camera poses ``(R (k, 3, 3), t (k, 3))``:
+    ``R = R_corrᵀ · Rz(θ) · R_view``; the translation from the centroids,
+    then moved so the keypoints land on the model."""
+    rotations = query.r_corr.T @ rotation_about_z(angles) @ codebook.viewpoints.rotations[candidates]
+    translations = query.centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
+    if settings.align_iterations > 0:
+        translations = codebook.index.align_translations(
+            query.keypoints,
+            rotations,
+            translations,
+            settings.align_iterations,
+            settings.candidate_inlier_distance * codebook.model.diameter,
+        )
+    return rotations, translations
+
+
+def score_poses(
+    query: Query,
+    codebook: Codebook,
+    observed: np.ndarray,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    inlier_distance: float,
+    free_space_weight: float,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> PoseScores:
+    """Stage 4: the terms of each pose against the ``observed`` points (camera
+    frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
+    d = codebook.model.diameter
+    fit, inliers, violation = codebook.index.score(
+        observed,
+        query.points,
+        query.spacing,
+        np.ascontiguousarray(rotations),
+        np.ascontiguousarray(translations),
+        inlier_distance,
+        settings.free_space_tolerance * d,
+        settings.free_space_model_stride,
+    )
+    cost = fit / inlier_distance + free_space_weight * violation
+    return PoseScores(fit, inliers, violation, cost)
+
+
+class Refined(NamedTuple):
+    """Stage 5's outcome: the chosen pose (model frame → camera) and its terms."""
+
+    candidate: int
+    """Which candidate it started from."""
+    R: np.ndarray
+    t: np.ndarray
+    scores: PoseScores
+    """The chosen pose's terms (arrays of one)."""
+    refined: bool
+
+
+def refine_hypotheses(
+    query: Query,
+    codebook: Codebook,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    candidate_cost: np.ndarray,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> Refined | None:
+    """Stage 5: coarse ICP from the ``settings.hypotheses`` best distinct
+    candidates, each scored again. Hypotheses that explain nearly as many
+    points as the best and violate free space little more than the least
+    violating compete; the lowest ICP RMSE wins and is polished by a longer
+    ICP. None when no ICP found enough points."""
+    d = codebook.model.diameter
+    coarse = _subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
+    starts = distinct_hypotheses(
+        rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
+    )
+    max_distance = settings.icp_max_distance * d
+    icp = codebook.index.refine(
+        coarse, rotations[starts], translations[starts], settings.hypothesis_iterations, max_distance
+    )
+    hyp_R, hyp_t, inliers, rmse = icp.rotations, icp.translations, icp.inliers, icp.rmse
+    usable = (
+        np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
+    )
+    if not usable.any():
+        return None
+    inlier_distance = settings.hypothesis_inlier_distance * d
+    scores = score_poses(query, codebook, coarse, hyp_R, hyp_t, inlier_distance, 0.0, settings)
+    explains = scores.inlier_fraction >= settings.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
+    free = (
+        scores.free_space_violation <= scores.free_space_violation[usable].min() + settings.hypothesis_free_space_margin
+    )
+    competing = usable & explains & free
+    pick = int(np.argmin(np.where(competing, rmse, np.inf)))
+    best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
+    if settings.icp_iterations > 0:
+        fine_icp = codebook.index.refine(
+            _subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
+            hyp_R[pick : pick + 1],
+            hyp_t[pick : pick + 1],
+            settings.icp_iterations,
+            max_distance,
+        )
+        fine_R, fine_t = fine_icp.rotations, fine_icp.translations
+        if (
+            fine_icp.inliers[0] >= settings.min_icp_inliers
+            and np.isfinite(fine_icp.rmse[0])
+            and near_the_cloud(query, codebook, fine_t, settings)[0]
+        ):
+            fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
+            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True)
+    return best
+
+
+def near_the_cloud(
+    query: Query, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
+) -> np.ndarray:
+    """(H,) bool: whether each pose (model frame → camera, ``translations``
+    (H, 3) metres: where the model's centre lands) keeps the model's centre
+    within ``settings.max_centre_offset`` model radii of the observed centroid."""
+    radius = 1.0 / codebook.model.scale
+    return np.linalg.norm(translations - query.centroid, axis=1) <= settings.max_centre_offset * radius
+
+
+def _subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """At most ``count`` of ``points``, drawn without replacement (seeded), C-contiguous."""
+    if len(points) > count:
+        points = points[np.random.default_rng(seed).choice(len(points), count, replace=False)]
+    return np.ascontiguousarray(points)
+
+
+def distinct_hypotheses(rotations: np.ndarray, order: np.ndarray, count: int, min_angle_deg: float) -> np.ndarray:
+    """Indices of up to ``count`` of ``rotations`` ((K, 3, 3)), taken in
+    ``order``, each at least ``min_angle_deg`` away from those taken before."""
+    cos_min = np.cos(np.radians(min_angle_deg))
+    kept: list[int] = []
+    for j in order:
+        # cos of the angle between two rotations: (trace(Raᵀ Rb) − 1) / 2.
+        if all((np.einsum("ij,ij->", rotations[j], rotations[k]) - 1) / 2 < cos_min for k in kept):
+            kept.append(int(j))
+            if len(kept) == count:
+                break
+    return np.asarray(kept, dtype=np.intp)
