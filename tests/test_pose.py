@@ -203,18 +203,25 @@ def test_a_doubtful_pose_gets_a_second_wider_search_that_never_does_worse(drill)
         assert errors(both, view, codebook).add < 0.1 * codebook.model.diameter
 
 
-def test_doubt_is_a_low_inlier_fraction_free_space_violations_or_no_refinement():
+def test_doubt_is_a_pose_that_explains_too_few_points_or_violates_free_space(drill):
     from edgepose.pose import doubtful, explains_more
-    from edgepose.stages import PoseScores, Refined
+    from edgepose.stages import PoseScores, Refined, prepare_query
+
+    mesh, codebook = drill
+    view = render_view(mesh, seed=3)
+    query = prepare_query(view.cloud, codebook)
+    R, t = view.T_cam_obj[:3, :3], view.T_cam_obj[:3, 3] + view.T_cam_obj[:3, :3] @ codebook.model.centre
+    one = lambda v: np.array([v])  # noqa: E731
+    unused = PoseScores(one(0.0), one(1.0), one(0.0), one(0.0))  # doubt scores the pose itself
+    flip = np.diag([1.0, -1.0, -1.0])  # turned over about the model's x axis, same centre
+    assert not doubtful(query, codebook, Refined(0, R, t, unused, True))
+    assert doubtful(query, codebook, Refined(0, R @ flip, t, unused, True))
+    assert doubtful(query, codebook, Refined(0, R, t + [0, 0, 0.05], unused, True))  # 5 cm too far
+    assert doubtful(query, codebook, Refined(0, R, t, unused, False))  # not refined
 
     def refined(inliers: float, violation: float, was_refined: bool = True) -> Refined:
-        one = lambda v: np.array([v])  # noqa: E731
-        return Refined(
-            0, np.eye(3), np.zeros(3), PoseScores(one(0.001), one(inliers), one(violation), one(0.1)), was_refined
-        )
+        return Refined(0, R, t, PoseScores(one(0.001), one(inliers), one(violation), one(0.1)), was_refined)
 
-    assert not doubtful(refined(0.99, 0.01))
-    assert doubtful(refined(0.90, 0.01)) and doubtful(refined(0.99, 0.05)) and doubtful(refined(0.99, 0.0, False))
     assert explains_more(refined(0.97, 0.0), refined(0.99, 0.05))
     assert not explains_more(refined(0.90, 0.0), refined(0.95, 0.01))
     assert explains_more(refined(0.5, 0.2), refined(0.99, 0.0, False))  # refined beats unrefined

@@ -26,6 +26,7 @@ from edgepose.stages import (
     refine_hypotheses,
     retrieve,
     score_poses,
+    subsample,
 )
 
 
@@ -146,7 +147,7 @@ def estimate(
     result = best_pose(query, codebook, found, refine, settings)
     lap("refine_hypotheses")
     searches = 1
-    if retry_k > k and doubtful(result, settings):
+    if retry_k > k and doubtful(query, codebook, result, settings):
         found = found.extended(posed(views[k:retry_k], angles[k:retry_k]))
         wider = best_pose(query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses))
         lap("refine_hypotheses")
@@ -212,13 +213,26 @@ def best_pose(
     return best
 
 
-def doubtful(result: Refined, settings: EstimateSettings = DEFAULT_SETTINGS) -> bool:
-    """Whether a search's pose is worth a second, wider search: not refined,
-    or explaining too few observed points, or contradicting free space."""
-    return (
-        not result.refined
-        or result.scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
-        or result.scores.free_space_violation[0] > settings.retry_above_free_space
+def doubtful(query: Query, codebook: Codebook, result: Refined, settings: EstimateSettings = DEFAULT_SETTINGS) -> bool:
+    """Whether a search's pose (model frame → camera) is worth a second,
+    wider search: not refined, or explaining too few of the hypotheses'
+    observed points within ``settings.doubt_inlier_distance``, or
+    contradicting free space."""
+    if not result.refined:
+        return True
+    scores = score_poses(
+        query,
+        codebook,
+        subsample(query.points, settings.hypothesis_points, settings.subsample_seed),
+        result.R[None],
+        result.t[None],
+        settings.doubt_inlier_distance * codebook.model.diameter,
+        0.0,
+        settings,
+    )
+    return bool(
+        scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
+        or scores.free_space_violation[0] > settings.retry_above_free_space
     )
 
 

@@ -175,7 +175,7 @@ def refine_hypotheses(
     violating compete; the lowest ICP RMSE wins and is polished by a longer
     ICP. None when no ICP found enough points."""
     d = codebook.model.diameter
-    coarse = _subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
+    coarse = subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
     starts = distinct_hypotheses(
         rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
     )
@@ -200,7 +200,7 @@ def refine_hypotheses(
     best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
     if settings.icp_iterations > 0:
         fine_icp = codebook.index.refine(
-            _subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
+            subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
             hyp_R[pick : pick + 1],
             hyp_t[pick : pick + 1],
             settings.icp_iterations,
@@ -227,7 +227,7 @@ def near_the_cloud(
     return np.linalg.norm(translations - query.centroid, axis=1) <= settings.max_centre_offset * radius
 
 
-def _subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
+def subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
     """At most ``count`` of ``points``, drawn without replacement (seeded), C-contiguous."""
     if len(points) > count:
         points = points[np.random.default_rng(seed).choice(len(points), count, replace=False)]
