@@ -144,12 +144,15 @@ def estimate(
     lap("retrieve")
     k = settings.k
     found = posed(views[:k], angles[:k])
-    result = best_pose(query, codebook, found, refine, settings)
+    icp_cache: dict = {}  # the second search reuses the first one's ICPs
+    result = best_pose(query, codebook, found, refine, settings, icp_cache)
     lap("refine_hypotheses")
     searches = 1
     if retry_k > k and doubtful(query, codebook, result, settings):
         found = found.extended(posed(views[k:retry_k], angles[k:retry_k]))
-        wider = best_pose(query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses))
+        wider = best_pose(
+            query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
+        )
         lap("refine_hypotheses")
         searches = 2
         if explains_more(wider, result):
@@ -194,7 +197,12 @@ class Candidates(NamedTuple):
 
 
 def best_pose(
-    query: Query, codebook: Codebook, found: Candidates, refine: bool, settings: EstimateSettings = DEFAULT_SETTINGS
+    query: Query,
+    codebook: Codebook,
+    found: Candidates,
+    refine: bool,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+    icp_cache: dict | None = None,
 ) -> Refined:
     """The lowest-cost candidate, or (``refine``) the winner of stage 5 when
     its ICP found enough points."""
@@ -208,7 +216,10 @@ def best_pose(
     )
     if refine:
         best = (
-            refine_hypotheses(query, codebook, found.rotations, found.translations, found.scores.cost, settings) or best
+            refine_hypotheses(
+                query, codebook, found.rotations, found.translations, found.scores.cost, settings, icp_cache
+            )
+            or best
         )
     return best
 

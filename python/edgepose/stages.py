@@ -168,22 +168,32 @@ def refine_hypotheses(
     translations: np.ndarray,
     candidate_cost: np.ndarray,
     settings: EstimateSettings = DEFAULT_SETTINGS,
+    icp_cache: dict | None = None,
 ) -> Refined | None:
     """Stage 5: coarse ICP from the ``settings.hypotheses`` best distinct
     candidates, each scored again. Hypotheses that explain nearly as many
     points as the best and violate free space little more than the least
     violating compete; the lowest ICP RMSE wins and is polished by a longer
-    ICP. None when no ICP found enough points."""
+    ICP. None when no ICP found enough points.
+
+    ``icp_cache`` (a dict kept between calls on the same query and the same
+    leading candidates, with the same ICP settings) holds each start's ICP
+    results, so a second, wider search does not repeat the first one's."""
+    cache: dict = {} if icp_cache is None else icp_cache
     d = codebook.model.diameter
     coarse = subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
     starts = distinct_hypotheses(
         rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
     )
     max_distance = settings.icp_max_distance * d
-    icp = codebook.index.refine(
-        coarse, rotations[starts], translations[starts], settings.hypothesis_iterations, max_distance
-    )
-    hyp_R, hyp_t, inliers, rmse = icp.rotations, icp.translations, icp.inliers, icp.rmse
+    new = [int(s) for s in starts if ("coarse", int(s)) not in cache]
+    if new:
+        icp = codebook.index.refine(
+            coarse, rotations[new], translations[new], settings.hypothesis_iterations, max_distance
+        )
+        for i, s in enumerate(new):  # ICP runs each start on its own: one at a time is the same
+            cache["coarse", s] = (icp.rotations[i], icp.translations[i], icp.inliers[i], icp.rmse[i])
+    hyp_R, hyp_t, inliers, rmse = (np.array(x) for x in zip(*(cache["coarse", int(s)] for s in starts)))
     usable = (
         np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
     )
@@ -199,13 +209,15 @@ def refine_hypotheses(
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
     best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
     if settings.icp_iterations > 0:
-        fine_icp = codebook.index.refine(
-            subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
-            hyp_R[pick : pick + 1],
-            hyp_t[pick : pick + 1],
-            settings.icp_iterations,
-            max_distance,
-        )
+        if ("fine", best.candidate) not in cache:
+            cache["fine", best.candidate] = codebook.index.refine(
+                subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
+                hyp_R[pick : pick + 1],
+                hyp_t[pick : pick + 1],
+                settings.icp_iterations,
+                max_distance,
+            )
+        fine_icp = cache["fine", best.candidate]
         fine_R, fine_t = fine_icp.rotations, fine_icp.translations
         if (
             fine_icp.inliers[0] >= settings.min_icp_inliers
