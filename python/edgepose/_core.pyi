@@ -90,6 +90,13 @@ class ModelIndex:
         rotations: npt.NDArray[np.float64],
         translations: npt.NDArray[np.float64],
     ) -> npt.NDArray[np.float64]: ...
+    def distances(
+        self,
+        points: npt.NDArray[np.float32],
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        along_normal: bool = False,
+    ) -> npt.NDArray[np.float64]: ...
     def align_translations(
         self,
         observed: npt.NDArray[np.float32],
@@ -108,7 +115,7 @@ class ModelIndex:
         inlier_distance: float,
         free_space_tolerance: float,
         model_stride: int,
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
     def refine(
         self,
         cloud: npt.NDArray[np.float32],

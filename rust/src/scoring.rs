@@ -129,6 +129,10 @@ pub struct PoseScore {
     /// Share of the camera-facing model points on observed rays that lie in
     /// front of the observation, 0–1 (0 when no model point is on an observed ray).
     pub free_space_violation: f64,
+    /// Share of the camera-facing model points that land where nothing was
+    /// observed (off the observed silhouette: hidden by an occluder, or a
+    /// wrong pose), 0–1 (0 when no model point faces the camera).
+    pub off_silhouette: f64,
 }
 
 /// Moves each pose's translation so the `observed` points (camera frame)
@@ -202,7 +206,7 @@ fn score_pose(
         }
         total += d.min(settings.inlier_distance);
     }
-    let (mut on_rays, mut violations) = (0usize, 0usize);
+    let (mut facing, mut on_rays, mut violations) = (0usize, 0usize, 0usize);
     let stride = settings.model_stride.max(1);
     for (p, n) in index.points().iter().zip(index.normals()).step_by(stride) {
         let pc = pose.apply(p);
@@ -210,6 +214,7 @@ fn score_pose(
         if nc.dot(&pc) >= 0.0 {
             continue; // faces away from the camera: hidden by the object itself
         }
+        facing += 1;
         if let Some(z) = grid.observed_depth(&pc) {
             on_rays += 1;
             if pc.z < z - settings.free_space_tolerance {
@@ -225,6 +230,11 @@ fn score_pose(
             0.0
         } else {
             violations as f64 / on_rays as f64
+        },
+        off_silhouette: if facing == 0 {
+            0.0
+        } else {
+            (facing - on_rays) as f64 / facing as f64
         },
     }
 }

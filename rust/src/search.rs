@@ -1,6 +1,8 @@
 //! Viewpoint search: cosine top-K over a codebook's codes, and verification
 //! of candidate poses by how well the observed keypoints land on the model.
 
+use rayon::prelude::*;
+
 use crate::index::{ModelIndex, Pose};
 use crate::Point3;
 
@@ -43,6 +45,39 @@ pub fn verify(index: &ModelIndex, keypoints: &[Point3], candidates: &[Pose]) -> 
                 })
                 .sum();
             total / keypoints.len().max(1) as f64
+        })
+        .collect()
+}
+
+/// Distance (metres) from each of `points` (camera frame) to the model
+/// surface, for each pose (model → camera): row-major, poses × points.
+/// `along_normal`: the distance to the nearest model point's tangent plane
+/// instead (blind to how the surface happens to be sampled). Poses run in
+/// parallel (offline work such as symmetry detection).
+pub fn point_distances(
+    index: &ModelIndex,
+    points: &[Point3],
+    poses: &[Pose],
+    along_normal: bool,
+) -> Vec<f64> {
+    poses
+        .par_iter()
+        .flat_map_iter(|pose| {
+            let to_model = pose.inverse();
+            points.iter().map(move |p| {
+                let m = to_model.apply(p);
+                let m = [m.x as f32, m.y as f32, m.z as f32];
+                let (i, squared) = index.nearest(&m);
+                if along_normal {
+                    let (q, n) = (index.points()[i], index.normals()[i]);
+                    (0..3)
+                        .map(|k| ((m[k] - q[k]) * n[k]) as f64)
+                        .sum::<f64>()
+                        .abs()
+                } else {
+                    (squared as f64).sqrt()
+                }
+            })
         })
         .collect()
 }

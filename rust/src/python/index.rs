@@ -1,7 +1,7 @@
 //! `ModelIndex`: the model's kd-tree for verification, scoring and ICP, and
 //! `IcpResults`, ICP's typed outcome.
 
-use numpy::{PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3};
+use numpy::{PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
@@ -61,6 +61,27 @@ impl PyModelIndex {
         })
     }
 
+    /// Distance (metres) from each of `points` (N, 3) to the model surface,
+    /// for each pose (model → camera: `rotations` (C, 3, 3), `translations`
+    /// (C, 3)): `(C, N)`; `along_normal`: to the nearest model point's
+    /// tangent plane. Poses run in parallel.
+    #[pyo3(signature = (points, rotations, translations, along_normal = false))]
+    fn distances<'py>(
+        &self,
+        py: Python<'py>,
+        points: PyReadonlyArray2<'py, f32>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+        along_normal: bool,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        guarded(|| {
+            let p = cloud_triples(&points, "points")?;
+            let poses = poses_from(&rotations, &translations)?;
+            let flat = py.detach(|| search::point_distances(&self.inner, p, &poses, along_normal));
+            Ok(PyArray1::from_vec(py, flat).reshape([poses.len(), p.len()])?)
+        })
+    }
+
     /// Each pose's translation moved so the `observed` points (camera frame)
     /// land on the model (rotations kept): `translations (C, 3)`.
     fn align_translations<'py>(
@@ -90,7 +111,8 @@ impl PyModelIndex {
     /// `translations` (C, 3)) against the `observed` points and the whole
     /// observed `cloud` (camera frame, metres; its point `spacing` sizes the
     /// free-space grid): `(fit (C,) metres, inlier_fraction (C,),
-    /// free_space_violation (C,))` (see the core's `scoring` module).
+    /// free_space_violation (C,), off_silhouette (C,))` (see the core's
+    /// `scoring` module).
     #[allow(clippy::too_many_arguments)]
     fn score<'py>(
         &self,
@@ -129,6 +151,7 @@ impl PyModelIndex {
                 PyArray1::from_vec(py, scores.iter().map(|s| s.fit).collect()),
                 PyArray1::from_vec(py, scores.iter().map(|s| s.inlier_fraction).collect()),
                 PyArray1::from_vec(py, scores.iter().map(|s| s.free_space_violation).collect()),
+                PyArray1::from_vec(py, scores.iter().map(|s| s.off_silhouette).collect()),
             )
                 .into_pyobject(py)
                 .map(|t| t.into_any())
