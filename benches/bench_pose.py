@@ -49,10 +49,11 @@ import edgepose
 import numpy as np
 from edgepose import report
 from edgepose.catalog import CatalogError, find_meshes
+from edgepose.confidence import TRUST_THRESHOLD
 from edgepose.eval import YCBV_OBJ_ID, BopRow, auc, write_bop_csv
 from edgepose.eval.baselines import PoseMethod, available_edgepose
 from edgepose.eval.benchmark import BenchObject as ObjectData
-from edgepose.eval.benchmark import MethodRun, load_object, summarise
+from edgepose.eval.benchmark import MethodRun, ViewResult, load_object, summarise
 from edgepose.eval.benchmark import run_method as run_views
 from edgepose.eval.methods import METHODS, create_method
 from edgepose.eval.stress import STRESS_LEVELS
@@ -246,6 +247,7 @@ def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[
         "correct_add_s",
         "correct_add_or_s",
         "score",
+        "confidence",
         "error",
     ]
     with path.open("w", newline="") as f:
@@ -276,6 +278,7 @@ def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[
                             int(e.correct_add_s),
                             int(e.correct_add_or_s),
                             f"{v.score:.6g}",
+                            f"{v.confidence:.4f}",
                             v.error,
                         ]
                     )
@@ -323,6 +326,30 @@ def plot_stress(runs: dict[str, list[MethodRun]], methods: list[str], path: Path
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def confidence_groups(runs: dict[str, list[MethodRun]], method: str = "edgepose") -> dict[str, list[ViewResult]]:
+    """``method``'s views: clean, all stressed levels pooled, then each level."""
+    by_level = {lv: [v for r in rs if r.name == method for v in r.views] for lv, rs in runs.items()}
+    groups = {"clean": by_level.get("clean", [])}
+    groups["stressed (all other levels)"] = [v for lv, vs in by_level.items() if lv != "clean" for v in vs]
+    groups.update({f"`{lv}`": vs for lv, vs in by_level.items()})
+    return {k: v for k, v in groups.items() if v}
+
+
+def plot_reliability(runs: dict[str, list[MethodRun]], path: Path) -> bool:
+    """edgepose's reliability diagram (clean and stressed views); False when it did not run."""
+    from edgepose.viz import save_reliability_png
+
+    groups = {k: v for k, v in confidence_groups(runs).items() if not k.startswith("`")}
+    if not groups:
+        return False
+    pairs = {
+        k: (np.array([v.confidence for v in vs]), np.array([v.errors.correct_add_or_s for v in vs]))
+        for k, vs in groups.items()
+    }
+    save_reliability_png(path, pairs)
+    return True
 
 
 def plot(runs: list[MethodRun], scatter_path: Path, cdf_path: Path) -> None:
@@ -527,6 +554,8 @@ Latency ratio: median latency of the method divided by that of **{reference}** (
 
 {per_object}
 
+{confidence_section(runs, extra_files)}
+
 ## Plots (stress level `{first}`)
 
 ![latency vs accuracy]({extra_files["scatter"].name})
@@ -549,6 +578,22 @@ Latency ratio: median latency of the method divided by that of **{reference}** (
 """
     path.write_text(text)
     return text
+
+
+def confidence_section(runs: dict[str, list[MethodRun]], extra_files: dict[str, Path]) -> str:
+    groups = confidence_groups(runs)
+    if not groups or "reliability" not in extra_files:
+        return ""
+    return f"""## Confidence (edgepose)
+
+`Pose.confidence` is the probability that the pose is correct (ADD(-S) < 0.1 × diameter), from a
+logistic model over the scoring terms of `estimate` fitted on training shapes (`python -m
+export.confidence`; never these objects). Default rule: trust a pose at confidence ≥ {TRUST_THRESHOLD}.
+AUROC: chance that a correct pose scores above a wrong one; ECE: expected calibration error (10 bins).
+
+{report.confidence_table(groups)}
+
+![reliability diagram]({extra_files["reliability"].name})"""
 
 
 def main() -> None:
@@ -618,6 +663,9 @@ def main() -> None:
         files[f"bop:{m}"] = out.with_name(f"{stem}_bop_{m}.csv")
         write_bop(files[f"bop:{m}"], {lv: r for lv, rs in runs.items() for r in rs if r.name == m}, obj_ids)
     plot_stress(runs, ran, files["stress"])
+    files["reliability"] = out.with_name(f"{stem}_reliability.png")
+    if not plot_reliability(runs, files["reliability"]):
+        del files["reliability"]
     first = next(iter(runs))
     plot(runs[first], files["scatter"], files["cdf"])
     wall = time.perf_counter() - started
@@ -626,6 +674,7 @@ def main() -> None:
     print(report.stress_table(runs, objects, ran))
     for level, rs in runs.items():
         print(f"\n{level}:\n{report.level_table(rs, peer_notes(ran, args.peer_views))}")
+    print(f"\nconfidence:\n{report.confidence_table(confidence_groups(runs))}")
     print(f"\nwrote {out} and {', '.join(p.name for p in files.values())} ({wall / 60:.1f} min)")
 
 

@@ -9,7 +9,8 @@ searched by ``estimate``'s own stages (``edgepose.stages.prepare_query`` and
 
 * retrieval: the top-K codes (cosine) over the 2,100-view codebook succeed when
   one candidate's direction lies within 15° of the true view direction; for the
-  symmetric objects (can, box) a candidate also counts when its implied
+  symmetric objects (those edgepose detects a symmetry in: can, box, mustard
+  bottle) a candidate also counts when its implied
   rotation (with the IRR angle) passes ADD-S < 0.1 d;
 * IRR: the angle error when the candidate is the map of the true viewpoint.
 
@@ -27,7 +28,7 @@ from pathlib import Path
 import edgepose
 import numpy as np
 from edgepose.encoder import MODELS_DIR, Encoder
-from edgepose.eval import YCB_SYMMETRIC, add_s, render_view
+from edgepose.eval import add_s, render_view
 from edgepose.model import read_mesh
 from edgepose.stages import prepare_query, retrieve
 from edgepose.views import rotation_about_z
@@ -45,7 +46,7 @@ def evaluate_object(encoder: Encoder, path: Path, queries: int, seed: int) -> di
     mesh = read_mesh(path)
     codebook = edgepose.build_codebook(mesh, encoder=encoder)
     model, views = codebook.model, codebook.viewpoints
-    symmetric = path.stem in YCB_SYMMETRIC
+    symmetric = codebook.symmetry.symmetric
     top1 = top_k = 0
     irr_errors = []
     for q in range(queries):

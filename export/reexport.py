@@ -56,12 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--source", type=Path, default=MODELS_DIR)
     parser.add_argument("--out", type=Path, default=MODELS_DIR)
     args = parser.parse_args(argv)
-    training = json.loads((args.source / "manifest.json").read_text())["training"]
+    source = json.loads((args.source / "manifest.json").read_text())
     encoder, irr = Encoder(), InPlaneRotation()
     load_into(encoder, weights_from_onnx(args.source / "encoder.onnx"))
     load_into(irr, weights_from_onnx(args.source / "irr.onnx"))
     hashes = export_onnx(encoder, irr, args.out)
-    manifest = write_manifest(args.out, hashes, encoder, irr, training)
+    # Same weights, same outputs: the confidence model fitted for them still holds.
+    manifest = write_manifest(args.out, hashes, encoder, irr, source["training"], source.get("confidence"))
     print(f"re-exported to {args.out}: {manifest['parameters']['total']} parameters", flush=True)
     return 0
 

@@ -140,9 +140,18 @@ def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, 
     return {name: hashlib.sha256((out / name).read_bytes()).hexdigest() for name in ("encoder.onnx", "irr.onnx")}
 
 
-def write_manifest(out: Path, hashes: dict[str, str], encoder: Encoder, irr: InPlaneRotation, training: dict) -> dict:
+def write_manifest(
+    out: Path,
+    hashes: dict[str, str],
+    encoder: Encoder,
+    irr: InPlaneRotation,
+    training: dict,
+    confidence: dict | None = None,
+) -> dict:
     """``manifest.json`` beside the exported networks: hashes, sizes, the
-    inputs the runtime must prepare, and how the weights were trained."""
+    inputs the runtime must prepare, how the weights were trained and, when
+    given, ``Pose.confidence``'s model fitted for these networks
+    (``python -m export.confidence --write``)."""
     manifest = {
         "format": 2,
         "files": hashes,
@@ -160,6 +169,8 @@ def write_manifest(out: Path, hashes: dict[str, str], encoder: Encoder, irr: InP
         },
         "training": training,
     }
+    if confidence is not None:
+        manifest["confidence"] = confidence
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
 
@@ -261,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     manifest = write_manifest(args.out, hashes, encoder, irr, training)
     print(f"exported to {args.out}: {manifest['parameters']['total']} parameters", flush=True)
+    print("new networks: refit Pose.confidence with `python -m export.confidence --write`", flush=True)
     return 0
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from edgepose.eval import (
-    YCB_SYMMETRIC,
     PoseErrors,
     add,
     add_or_s,
@@ -154,8 +153,3 @@ def test_bad_shapes_raise():
         add(np.zeros((5, 2)), np.eye(4), np.eye(4))
     with pytest.raises(ValueError, match=r"\(4, 4\)"):
         add_s(AXES, np.eye(3), np.eye(4))
-
-
-def test_ycb_symmetric_objects():
-    assert YCB_SYMMETRIC == {"master_chef_can", "cracker_box"}
-    assert not YCB_SYMMETRIC & {"banana", "mustard_bottle", "power_drill"}

@@ -9,12 +9,14 @@ from __future__ import annotations
 from edgepose._core import __version__
 from edgepose.cloud import cloud_from_depth
 from edgepose.codebook import Codebook, CodebookError, build_codebook
+from edgepose.confidence import TRUST_THRESHOLD
 from edgepose.encoder import Encoder, ModelFilesError
 from edgepose.errors import EdgePoseError, InvalidCloudError, InvalidModelError, MeshLoadError
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
 from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
 from edgepose.pose import Pose, estimate
 from edgepose.settings import EstimateSettings
+from edgepose.symmetry import Symmetry, detect_symmetry
 from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
 
 __all__ = [
@@ -26,6 +28,8 @@ __all__ = [
     "EstimateSettings",
     "ModelFilesError",
     "Pose",
+    "Symmetry",
+    "TRUST_THRESHOLD",
     "build_codebook",
     "cloud_from_depth",
     "estimate",
@@ -37,6 +41,7 @@ __all__ = [
     "Viewpoints",
     "compute_maps",
     "detect_scale",
+    "detect_symmetry",
     "farthest_point_sample",
     "fibonacci_viewpoints",
     "load_model",

@@ -78,6 +78,8 @@ class ObjectResult:
     attempts: int = 1
     runs: dict[str, Any] = field(default_factory=dict)
     """eval only: method name → :class:`edgepose.eval.benchmark.MethodRun` of this object."""
+    symmetric: bool = False
+    """eval only: judged with ADD-S in ADD(-S)."""
 
     @property
     def failed(self) -> bool:
@@ -175,9 +177,11 @@ def evaluate_object(
     *,
     symmetric: bool | None = None,
     occluders: int = 0,
+    stress: str = "clean",
     retries: int = DEFAULT_RETRIES,
 ) -> ObjectResult:
-    """Render one view of a mesh per seed and run each pose method (names of
+    """Render one view of a mesh per seed (at the ``stress`` level of
+    :data:`edgepose.eval.STRESS_LEVELS`) and run each pose method (names of
     :data:`edgepose.eval.methods.METHODS`) on them
     (:func:`edgepose.eval.benchmark.run_method`); the result's ``runs`` hold
     the per-view scores. Never raises (see :func:`build_object`)."""
@@ -187,11 +191,11 @@ def evaluate_object(
     mesh = Path(mesh)
 
     def job() -> ObjectResult:
-        obj = load_object(mesh, seeds, symmetric=symmetric, occluders=occluders)
+        obj = load_object(mesh, seeds, symmetric=symmetric, occluders=occluders, stress=stress)
         runs = {}
         for name in methods:
             runs[name] = run_method(create_method(name), [obj])
-        return ObjectResult(mesh.stem, "evaluated", 0.0, views=len(seeds), runs=runs)
+        return ObjectResult(mesh.stem, "evaluated", 0.0, views=len(seeds), runs=runs, symmetric=obj.symmetric)
 
     return _attempt(mesh, job, retries)
 
@@ -356,6 +360,7 @@ def evaluate_catalog(
     *,
     symmetric: Callable[[str], bool | None] = lambda name: None,
     occluders: int = 0,
+    stress: str = "clean",
     executor: LocalExecutor | RayExecutor | None = None,
     retries: int = DEFAULT_RETRIES,
     on_result: Callable[[ObjectResult], None] | None = None,
@@ -372,6 +377,7 @@ def evaluate_catalog(
                 "methods": methods,
                 "symmetric": symmetric(m.stem),
                 "occluders": occluders,
+                "stress": stress,
                 "retries": retries,
             },
         )

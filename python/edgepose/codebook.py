@@ -11,8 +11,9 @@ that would otherwise load silently as different numbers.
 A codebook holds, per viewpoint: the encoder's unit code, the angular
 spectrum (for the in-plane angle), the view rotation and the centroid of the
 visible model points; and once: the standard model, its scale, diameter and
-centre, the fingerprint of the encoder that made the codes and, when built
-from a mesh file, the sha256 of that file (so a catalogue build can tell an
+centre, its rotational symmetries (:mod:`edgepose.symmetry`), the
+fingerprint of the encoder that made the codes and, when built from a mesh
+file, the sha256 of that file (so a catalogue build can tell an
 up-to-date codebook from a stale one by reading the codebook alone).
 
 A saved file is a function of its contents only (header keys in a fixed
@@ -38,11 +39,13 @@ from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import EdgePoseError
 from edgepose.maps import DEFAULT_MAP_POINTS, compute_maps
 from edgepose.model import DEFAULT_MODEL_POINTS, MeshSource, StandardModel, load_model
+from edgepose.symmetry import NO_SYMMETRY, Symmetry, detect_symmetry
 from edgepose.views import DEFAULT_VIEWS, Viewpoints, fibonacci_viewpoints
 
 FORMAT = "edgepose-codebook"
 #: 2: header ``checksum`` (sha256 of the metadata and tensors) added.
-VERSION = 2
+#: 3: header ``symmetry`` (the object's detected rotational symmetries) added.
+VERSION = 3
 #: A codebook file larger than this is not a codebook (bounds what loading reads).
 MAX_FILE_BYTES = 64 * 1024 * 1024
 
@@ -70,6 +73,9 @@ class Codebook:
     source_sha256: str | None = None
     """sha256 of the mesh file's bytes it was built from (None: built from an
     in-memory mesh or model, or saved by an older edgepose)."""
+    symmetry: Symmetry = NO_SYMMETRY
+    """The object's rotational symmetries, object frame: poses differing by
+    them are equally right (detected when built)."""
     timings: dict = field(default_factory=dict)
     """Build time per stage, seconds (empty for a loaded codebook)."""
     index: _core.ModelIndex = field(init=False, repr=False)
@@ -116,6 +122,7 @@ class Codebook:
                     "spacing": float(np.float32(self.model.spacing)),
                 }
             ),
+            "symmetry": json.dumps(self.symmetry.to_json()),
         }
         if self.source_sha256 is not None:
             metadata["source_sha256"] = self.source_sha256
@@ -228,6 +235,7 @@ class Codebook:
                 fingerprint=metadata["encoder"],
                 map_points=int(metadata["map_points"]),
                 source_sha256=metadata.get("source_sha256"),
+                symmetry=Symmetry.from_json(json.loads(metadata["symmetry"])),
             )
         except KeyError as e:
             raise CodebookError(f"{name}: missing {e} in the codebook") from None
@@ -258,15 +266,34 @@ def build_codebook(
     t2 = time.perf_counter()
     codes, spectra = encoder.encode(maps.points)
     t3 = time.perf_counter()
+    symmetry = detect_symmetry(model)
+    t_sym = time.perf_counter()
     built = Codebook(
-        model, viewpoints, codes, spectra, maps.centroids, encoder.fingerprint, encoder.map_points, source_sha256
+        model,
+        viewpoints,
+        codes,
+        spectra,
+        maps.centroids,
+        encoder.fingerprint,
+        encoder.map_points,
+        source_sha256,
+        symmetry,
     )
     # Through the stored dtypes, so a built codebook and its saved copy give identical poses.
     tensors = built._tensors()
     stored = Codebook._from_parts(tensors, built._metadata(tensors), encoder, "new codebook")
     t4 = time.perf_counter()
     object.__setattr__(
-        stored, "timings", {"model": t1 - t0, "maps": t2 - t1, "encode": t3 - t2, "store": t4 - t3, "total": t4 - t0}
+        stored,
+        "timings",
+        {
+            "model": t1 - t0,
+            "maps": t2 - t1,
+            "encode": t3 - t2,
+            "symmetry": t_sym - t3,
+            "store": t4 - t_sym,
+            "total": t4 - t0,
+        },
     )
     return stored
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from edgepose import _core
+from edgepose.confidence import ConfidenceModel
 from edgepose.errors import EdgePoseError
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
@@ -57,6 +58,10 @@ class Encoder:
             # Each map's local regions: its first `centres` points and their nearest neighbours.
             self.centres: int = int(manifest["inputs"]["centres"])
             self.neighbours: int = int(manifest["inputs"]["neighbours"])
+            # Pose.confidence's calibrated model, fitted for these networks (None: not shipped).
+            self.confidence: ConfidenceModel | None = (
+                ConfidenceModel.from_manifest(manifest["confidence"]) if "confidence" in manifest else None
+            )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise ModelFilesError(f"{models_dir / 'manifest.json'}: malformed ({type(e).__name__}: {e})") from None
         options = ort.SessionOptions()

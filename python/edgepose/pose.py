@@ -1,13 +1,16 @@
 """``estimate(cloud, codebook)``: the 6D pose of an object from its segmented
 depth cloud, by the five stages of :mod:`edgepose.stages` (prepare the query,
 retrieve codebook views, pose them, score them, refine the best hypotheses);
-a doubtful pose gets a second, wider search (:func:`doubtful`).
+a doubtful pose gets a second, wider search (:func:`doubtful`). Every pose
+carries its ``confidence`` (:mod:`edgepose.confidence`) and the object's
+symmetries.
 
 Every tuning value lives in :class:`edgepose.settings.EstimateSettings`.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -15,6 +18,7 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepose.codebook import Codebook, CodebookError
+from edgepose.confidence import evidence_of
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
 from edgepose.stages import (
@@ -28,6 +32,7 @@ from edgepose.stages import (
     score_poses,
     subsample,
 )
+from edgepose.symmetry import NO_SYMMETRY, Symmetry
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,7 +57,8 @@ class Pose:
     """(K,) truncated keypoint distance of each candidate pose, metres."""
     timings: dict = field(default_factory=dict)
     """Seconds per stage, named as the stage functions: prepare_query, retrieve,
-    candidate_poses, score_poses, refine_hypotheses, and the total."""
+    candidate_poses, score_poses, refine_hypotheses, then confidence (the
+    evidence and its probability), and the total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
     points near the model)."""
@@ -67,7 +73,31 @@ class Pose:
     most ``settings.max_cloud_points``)."""
     searches: int = 1
     """1, or 2 when the first pose was doubtful and a wider search followed
-    (``settings.retry_k`` candidates; see :func:`doubtful`)."""
+    (``settings.retry_k`` candidates; see :func:`doubtful`); 0 for a
+    :class:`edgepose.Tracker`'s tracked frame (no search)."""
+    confidence: float = float("nan")
+    """Probability (0–1) that the pose is correct, i.e. within ADD(-S) <
+    0.1 × diameter of the truth (ADD-S for a symmetric object). Trust it at
+    ``>= 0.5``. From the scoring terms in ``evidence`` by the shipped
+    calibrated model (:mod:`edgepose.confidence`); NaN when the networks in
+    use ship none."""
+    evidence: dict = field(default_factory=dict)
+    """The scoring terms ``confidence`` is computed from, by name
+    (:data:`edgepose.confidence.FEATURES`)."""
+    symmetry: Symmetry = NO_SYMMETRY
+    """The object's rotational symmetries (object frame): the pose is only
+    defined up to them, so a pose turned by one is equally right."""
+    mode: str = "estimated"
+    """How the pose was obtained: ``estimated`` (by :func:`estimate`), or by
+    a :class:`edgepose.Tracker`: ``tracked`` (refined from the last frame),
+    ``initialised`` (its first frame) or ``reinitialised`` (``estimate``
+    again, after the tracked pose failed its check)."""
+
+    @property
+    def ambiguous(self) -> bool:
+        """Whether the object is symmetric, so that other poses (this one
+        turned by ``symmetry``) are equally right."""
+        return self.symmetry.symmetric
 
     @property
     def matrix(self) -> np.ndarray:
@@ -146,17 +176,38 @@ def estimate(
     found = posed(views[:k], angles[:k])
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
+    loose = loose_scores(query, codebook, result, settings)
     lap("refine_hypotheses")
     searches = 1
-    if retry_k > k and doubtful(query, codebook, result, settings):
+    if retry_k > k and doubtful(query, codebook, result, settings, loose):
         found = found.extended(posed(views[k:retry_k], angles[k:retry_k]))
         wider = best_pose(
             query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
         )
-        lap("refine_hypotheses")
         searches = 2
         if explains_more(wider, result):
-            result = wider
+            result, loose = wider, loose_scores(query, codebook, wider, settings)
+        lap("refine_hypotheses")
+    tight = (
+        result.scores
+        if result.refined
+        else scores_at(query, codebook, result, settings.hypothesis_inlier_distance, settings)
+    )
+    evidence = evidence_of(
+        inlier_fraction=tight.inlier_fraction[0],
+        loose_inlier_fraction=loose.inlier_fraction[0],
+        fit_ratio=tight.fit[0] / (settings.hypothesis_inlier_distance * codebook.model.diameter),
+        free_space_violation=loose.free_space_violation[0],
+        score=similarity[result.candidate],
+        searches=searches,
+        refined=result.refined,
+        margin=result.margin,
+        off_silhouette=loose.off_silhouette[0],
+        # Column by column: numpy reduces an (N, 3) array along axis 0 ~8x slower.
+        observed_extent=math.hypot(*(float(np.ptp(query.points[:, k])) for k in range(3))) / codebook.model.diameter,
+    )
+    confidence = encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
+    lap("confidence")
     timings["total"] = time.perf_counter() - t0
     model = codebook.model
     # Model frame = object (mesh) frame shifted by the model centre.
@@ -175,6 +226,9 @@ def estimate(
         inlier_fraction=float(result.scores.inlier_fraction[0]),
         free_space_violation=float(result.scores.free_space_violation[0]),
         kept_points=len(query.points),
+        confidence=confidence,
+        evidence=evidence,
+        symmetry=codebook.symmetry,
     )
 
 
@@ -224,23 +278,44 @@ def best_pose(
     return best
 
 
-def doubtful(query: Query, codebook: Codebook, result: Refined, settings: EstimateSettings = DEFAULT_SETTINGS) -> bool:
-    """Whether a search's pose (model frame → camera) is worth a second,
-    wider search: not refined, or explaining too few of the hypotheses'
-    observed points within ``settings.doubt_inlier_distance``, or
-    contradicting free space."""
-    if not result.refined:
-        return True
-    scores = score_poses(
+def scores_at(
+    query: Query, codebook: Codebook, result: Refined, inlier_distance: float, settings: EstimateSettings
+) -> PoseScores:
+    """A search's pose (model frame → camera) scored on the hypotheses'
+    observed points at ``inlier_distance`` × diameter."""
+    return score_poses(
         query,
         codebook,
         subsample(query.points, settings.hypothesis_points, settings.subsample_seed),
         result.R[None],
         result.t[None],
-        settings.doubt_inlier_distance * codebook.model.diameter,
+        inlier_distance * codebook.model.diameter,
         0.0,
         settings,
     )
+
+
+def loose_scores(
+    query: Query, codebook: Codebook, result: Refined, settings: EstimateSettings = DEFAULT_SETTINGS
+) -> PoseScores:
+    """The pose's scores at the looser ``settings.doubt_inlier_distance``."""
+    return scores_at(query, codebook, result, settings.doubt_inlier_distance, settings)
+
+
+def doubtful(
+    query: Query,
+    codebook: Codebook,
+    result: Refined,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+    loose: PoseScores | None = None,
+) -> bool:
+    """Whether a search's pose (model frame → camera) is worth a second,
+    wider search: not refined, or explaining too few of the hypotheses'
+    observed points within ``settings.doubt_inlier_distance``, or
+    contradicting free space (``loose``: its :func:`loose_scores`, if known)."""
+    if not result.refined:
+        return True
+    scores = loose or loose_scores(query, codebook, result, settings)
     return bool(
         scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
         or scores.free_space_violation[0] > settings.retry_above_free_space

@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from edgepose.eval.benchmark import BenchObject, MethodRun, summarise
+from edgepose.confidence import TRUST_THRESHOLD
+from edgepose.eval.benchmark import BenchObject, MethodRun, ViewResult, summarise, summarise_confidence
 from edgepose.eval.metrics import CORRECT_FRACTION, PoseErrors
 
 if TYPE_CHECKING:
@@ -107,6 +108,9 @@ def pose_json(pose: Pose, points: int) -> dict[str, Any]:
     """``edgepose estimate``'s fields of a pose found in a cloud of ``points`` points."""
     return {
         "matrix": pose.matrix.tolist(),
+        "confidence": pose.confidence if np.isfinite(pose.confidence) else None,
+        "trusted": bool(pose.confidence >= TRUST_THRESHOLD),
+        "symmetry": pose.symmetry.describe(),
         "score": pose.score,
         "fit": pose.fit,
         "view": pose.view,
@@ -116,6 +120,7 @@ def pose_json(pose: Pose, points: int) -> dict[str, Any]:
         "points": int(points),
         "kept_points": pose.kept_points,
         "searches": pose.searches,
+        "evidence": pose.evidence,
         "timings": pose.timings,
     }
 
@@ -149,7 +154,7 @@ def estimate_caption(cloud_name: str, points: int, pose: Pose, e: PoseErrors | N
     """The lines written on ``edgepose estimate --show``'s picture."""
     lines = [
         f"{cloud_name}: {points} points, estimate {pose.timings['total'] * 1000:.1f} ms, "
-        f"fit {pose.fit * 1000:.1f} mm, score {pose.score:.3f}"
+        f"confidence {pose.confidence:.2f}, fit {pose.fit * 1000:.1f} mm, score {pose.score:.3f}"
     ]
     if e is not None:
         lines.append(
@@ -157,6 +162,13 @@ def estimate_caption(cloud_name: str, points: int, pose: Pose, e: PoseErrors | N
             f"{e.diameter * 100:.1f} mm); rotation {e.rotation_deg:.2f}°, translation {e.translation_mm:.1f} mm"
         )
     return lines
+
+
+def trust_text(confidence: float) -> str:
+    """What the default rule says about a confidence."""
+    if confidence != confidence:  # NaN
+        return "no confidence model shipped with these networks"
+    return f"{'trusted' if confidence >= TRUST_THRESHOLD else 'doubtful'}: the rule is >= {TRUST_THRESHOLD}"
 
 
 def matrix_text(matrix: np.ndarray, indent: int = 12) -> str:
@@ -180,13 +192,16 @@ def demo_text(
         "[bold]true[/bold]        T_cam_obj =\n" + matrix_text(view.T_cam_obj),
         f"[bold]errors[/bold]      rotation {e.rotation_deg:.2f}°, translation {e.translation_mm:.1f} mm, "
         f"{metric} {e.add_or_s * 1000:.1f} mm ({verdict} at 0.1 × diameter = {threshold_mm:.1f} mm)",
+        f"[bold]confidence[/bold]  {pose.confidence:.2f} ({trust_text(pose.confidence)}); "
+        f"symmetries: {pose.symmetry.describe()}",
         f"[bold]timings[/bold]     {pose.timings['total'] * 1000:.1f} ms in all ({stages} ms)",
     ]
     caption = [
         f"edgepose demo: {name}, seed {seed}, {len(view.cloud)} points, estimate {pose.timings['total'] * 1000:.1f} ms",
         f"{metric} {e.add_or_s * 1000:.1f} mm: {'correct' if e.correct_add_or_s else 'WRONG'} "
         f"(threshold 0.1 x diameter = {threshold_mm:.1f} mm)",
-        f"rotation error {e.rotation_deg:.2f}°, translation error {e.translation_mm:.1f} mm",
+        f"rotation error {e.rotation_deg:.2f}°, translation error {e.translation_mm:.1f} mm, "
+        f"confidence {pose.confidence:.2f}",
     ]
     return "\n".join(text), caption
 
@@ -351,3 +366,44 @@ def stress_table(runs: dict[str, list[MethodRun]], objects: dict[str, list[Bench
         rows.append([level, f"{visible:.2f}", f"{spill:.2f}", *cells])
     header = ["stress level", "mean visible fraction", "mean spill fraction", *(f"{m} ADD(-S)" for m in methods)]
     return markdown_table(header, "lrr" + "r" * len(methods), rows)
+
+
+# ----------------------------------------------------------------- confidence
+
+
+def confidence_rows(groups: dict[str, list[ViewResult]]) -> tuple[list[str], list[list[str]]]:
+    """Header and rows: per group of views (a stress level, "stressed", …),
+    how well confidence tells correct poses from wrong ones; groups without
+    confidences are left out."""
+    rows = []
+    for label, views in groups.items():
+        c = summarise_confidence(views)
+        if c is None:
+            continue
+        rows.append(
+            [
+                label,
+                f"{c.views}",
+                f"{c.correct:.1f} %",
+                f"{c.auroc:.3f}" if np.isfinite(c.auroc) else "–",
+                f"{c.ece:.3f}",
+                f"{c.wrong_accepted:.1f} %" if np.isfinite(c.wrong_accepted) else "–",
+                f"{c.correct_kept:.1f} %" if np.isfinite(c.correct_kept) else "–",
+            ]
+        )
+    header = [
+        "views of",
+        "views",
+        "correct",
+        "AUROC",
+        "ECE",
+        f"wrong accepted (≥ {TRUST_THRESHOLD})",
+        f"correct kept (≥ {TRUST_THRESHOLD})",
+    ]
+    return header, rows
+
+
+def confidence_table(groups: dict[str, list[ViewResult]]) -> str:
+    """:func:`confidence_rows` as markdown."""
+    header, rows = confidence_rows(groups)
+    return markdown_table(header, "l" + "r" * 6, rows)

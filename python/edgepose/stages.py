@@ -60,6 +60,8 @@ class PoseScores(NamedTuple):
     free_space_violation: np.ndarray
     cost: np.ndarray
     """fit / inlier distance + free_space_weight × free_space_violation."""
+    off_silhouette: np.ndarray
+    """Share of the camera-facing model points landing where nothing was observed, 0–1."""
 
 
 def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> Query:
@@ -135,7 +137,7 @@ def score_poses(
     """Stage 4: the terms of each pose against the ``observed`` points (camera
     frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
     d = codebook.model.diameter
-    fit, inliers, violation = codebook.index.score(
+    fit, inliers, violation, off_silhouette = codebook.index.score(
         observed,
         query.points,
         query.spacing,
@@ -146,7 +148,7 @@ def score_poses(
         settings.free_space_model_stride,
     )
     cost = fit / inlier_distance + free_space_weight * violation
-    return PoseScores(fit, inliers, violation, cost)
+    return PoseScores(fit, inliers, violation, cost, off_silhouette)
 
 
 class Refined(NamedTuple):
@@ -159,6 +161,11 @@ class Refined(NamedTuple):
     scores: PoseScores
     """The chosen pose's terms (arrays of one)."""
     refined: bool
+    margin: float = 1.0
+    """How much better the chosen hypothesis explains the view than the best
+    rival that is a different pose (more than ``RIVAL_DISTANCE`` × d apart,
+    symmetries aside): inlier fraction minus free-space violation, winner's
+    minus rival's; 1 when no rival was refined."""
 
 
 def refine_hypotheses(
@@ -207,7 +214,12 @@ def refine_hypotheses(
     )
     competing = usable & explains & free
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
-    best = Refined(int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True)
+    net = scores.inlier_fraction - scores.free_space_violation
+    rivals = usable & (pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d)
+    margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
+    best = Refined(
+        int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True, margin
+    )
     if settings.icp_iterations > 0:
         if ("fine", best.candidate) not in cache:
             cache["fine", best.candidate] = codebook.index.refine(
@@ -225,8 +237,27 @@ def refine_hypotheses(
             and near_the_cloud(query, codebook, fine_t, settings)[0]
         ):
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
-            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True)
+            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True, margin)
     return best
+
+
+#: Hypotheses farther apart than this × d (ADD, or ADD-S for a symmetric
+#: object) are different poses: rivals for :attr:`Refined.margin`.
+RIVAL_DISTANCE = 0.1
+#: Model points (the first, spread ones) that measure distances between poses.
+RIVAL_POINTS = 64
+
+
+def pose_distances(codebook: Codebook, rotations: np.ndarray, translations: np.ndarray, ref: int) -> np.ndarray:
+    """(H,) ADD (ADD-S for a symmetric object) of each pose (model frame →
+    camera) from pose ``ref``, on the model's first ``RIVAL_POINTS``
+    farthest-point samples, metres."""
+    points = codebook.model.points[:RIVAL_POINTS].astype(np.float64)
+    moved = np.einsum("hij,nj->hni", rotations, points) + translations[:, None, :]
+    if not codebook.symmetry.symmetric:
+        return np.linalg.norm(moved - moved[ref], axis=2).mean(axis=1)
+    gaps = np.linalg.norm(moved[:, :, None, :] - moved[ref][None, None, :, :], axis=3)
+    return gaps.min(axis=2).mean(axis=1)
 
 
 def near_the_cloud(

@@ -302,3 +302,39 @@ def recorder(spawn: bool = False, save: str | os.PathLike | None = None) -> Reco
     except ImportError:
         print("warning: rerun logging needs the viz extra (pip install 'edgepose[viz]'); not logging", file=sys.stderr)
         return NullRecorder()
+
+
+def save_reliability_png(path: str | os.PathLike, groups: dict[str, tuple[np.ndarray, np.ndarray]]) -> Path:
+    """A reliability diagram: per group (label → (confidences, correct)), the
+    share of correct poses against the mean confidence in 10 bins; a
+    calibrated confidence lies on the diagonal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from edgepose.eval.metrics import auroc, calibration
+
+    fig, ax = plt.subplots(figsize=(5.2, 5.0))
+    ax.plot([0, 1], [0, 1], color="grey", lw=1, ls="--", label="calibrated")
+    for label, (p, y) in groups.items():
+        c = calibration(p, y)
+        filled = c.count > 0
+        ax.plot(
+            c.mean_confidence[filled],
+            c.accuracy[filled],
+            marker="o",
+            label=f"{label}: {len(p)} poses, AUROC {auroc(p, y):.3f}, ECE {c.ece:.3f}",
+        )
+    ax.set_xlabel("confidence (mean per bin)")
+    ax.set_ylabel("share correct, ADD(-S) < 0.1 × diameter")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_title("Reliability of Pose.confidence")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper left", fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

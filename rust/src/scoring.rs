@@ -399,6 +399,15 @@ mod tests {
             score.free_space_violation < 0.01 && score.inlier_fraction > 0.99,
             "{score:?}"
         );
+        // ... but they are off the observed silhouette: about half the plate.
+        assert!(
+            score.off_silhouette > 0.4 && score.off_silhouette < 0.6,
+            "{score:?}"
+        );
+        let whole = posed(&points, &normals, &truth, true);
+        let grid = DepthGrid::new(&whole, 0.002, 2.0);
+        let seen = score_poses(&index, &whole, &grid, &[truth], &settings())[0];
+        assert!(seen.off_silhouette < 0.05, "{seen:?}");
     }
 
     #[test]

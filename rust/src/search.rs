@@ -88,6 +88,33 @@ mod tests {
     use nalgebra::{Matrix3, Rotation3, Vector3};
 
     #[test]
+    fn point_distances_are_per_point_and_per_pose() {
+        // A flat square of points (z = 0) with normals +z.
+        let points: Vec<Point3> = (0..100)
+            .map(|i| [(i % 10) as f32 * 0.01, (i / 10) as f32 * 0.01, 0.0])
+            .collect();
+        let normals = vec![[0.0f32, 0.0, 1.0]; points.len()];
+        let index = ModelIndex::new(points.clone(), normals);
+        let lifted = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, -0.003), // model 3 mm below the points
+        };
+        let slid = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.005, 0.0, 0.0), // half a spacing along the plane
+        };
+        let probe: Vec<Point3> = points[..20].to_vec();
+        let d = point_distances(&index, &probe, &[lifted, slid], false);
+        assert_eq!(d.len(), 2 * probe.len());
+        assert!(d[..20].iter().all(|v| (v - 0.003).abs() < 1e-6), "{d:?}");
+        assert!(d[20..].iter().all(|v| (v - 0.005).abs() < 1e-6), "{d:?}");
+        // Along the normal, sliding within the plane costs nothing.
+        let n = point_distances(&index, &probe, &[lifted, slid], true);
+        assert!(n[..20].iter().all(|v| (v - 0.003).abs() < 1e-6), "{n:?}");
+        assert!(n[20..].iter().all(|v| v.abs() < 1e-6), "{n:?}");
+    }
+
+    #[test]
     fn top_k_matches_a_full_sort() {
         let dim = 4;
         let codes: Vec<f32> = (0..400)

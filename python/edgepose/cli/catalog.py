@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 
 from edgepose.catalog import DEFAULT_CPUS_PER_TASK, DEFAULT_RETRIES
@@ -79,14 +80,25 @@ def evaluate(
     meshes: Annotated[list[Path], typer.Argument(help="Mesh files (metres or detected mm), or folders of them.")],
     views: Annotated[int, typer.Option(help="Rendered views per object.")] = 10,
     seed: Annotated[int, typer.Option(help="Seed of the views (view i of object k: seed·100000 + k·1000 + i).")] = 0,
-    occluders: Annotated[int, typer.Option(help="Occluding rectangles per view.")] = 0,
+    occluders: Annotated[int, typer.Option(help="Occluding rectangles per view (clean level only).")] = 0,
+    stress: Annotated[
+        str,
+        typer.Option(
+            help="Stress level of the views (edgepose.eval.STRESS_LEVELS): clean, visible70, visible40, visible20, "
+            "spill2, spill5, spill8, eroded3, partial, noise_far, occluded30_spill5."
+        ),
+    ] = "clean",
+    reliability: Annotated[
+        Path | None, typer.Option(help="Write edgepose's reliability diagram (confidence vs share correct) here, PNG.")
+    ] = None,
     methods: Annotated[
         str, typer.Option(help=f"Comma-separated: {', '.join(METHODS)} (peers need the baselines extra).")
     ] = "edgepose",
     symmetric: Annotated[
         list[str] | None,
         typer.Option(
-            help="Object (file stem) judged with ADD-S in ADD(-S); repeatable. Default: the symmetric YCB objects."
+            help="Object (file stem) judged with ADD-S in ADD(-S); repeatable. Default: the objects in which "
+            "edgepose detects a rotational symmetry."
         ),
     ] = None,
     ray: RayOption = False,
@@ -98,14 +110,17 @@ def evaluate(
     """Benchmark on rendered depth views of meshes, with known poses.
 
     Prints per object: ADD-S and ADD(-S) below 0.1 × diameter, their AUC (0–10 cm), the median estimate latency and
-    the preparation (codebook build) time. --ray evaluates one object per Ray task (accuracy is the same; latencies
+    the preparation (codebook build) time; then how well each edgepose method's confidence tells its correct poses
+    from its wrong ones (AUROC, calibration error, what the >= 0.5 rule accepts).
+    --ray evaluates one object per Ray task (accuracy is the same; latencies
     then include the tasks' competition for the CPUs).
     """
     from edgepose.catalog import evaluate_catalog, find_meshes
-    from edgepose.eval.benchmark import merge_runs
+    from edgepose.eval.benchmark import merge_runs, summarise_confidence
     from edgepose.eval.methods import create_method, parse_methods
-    from edgepose.eval.metrics import YCB_SYMMETRIC
-    from edgepose.report import eval_table, progress
+    from edgepose.eval.stress import STRESS_LEVELS
+    from edgepose.report import confidence_rows, eval_table, progress, rich_table
+    from edgepose.viz import save_reliability_png
 
     with handle_errors():
         try:
@@ -114,6 +129,12 @@ def evaluate(
             raise Failure(str(e)) from None
         if views < 1:
             raise Failure(f"--views must be at least 1, got {views}")
+        if stress not in STRESS_LEVELS:
+            raise Failure(f"--stress must be one of {', '.join(STRESS_LEVELS)}, got {stress!r}")
+        if reliability is not None and not any(m.startswith("edgepose") for m in chosen):
+            raise Failure("--reliability needs an edgepose method: only edgepose gives confidences")
+        if occluders and stress != "clean":
+            raise Failure("--occluders applies to the clean level only; stress levels set their own occluders")
         for name in chosen:
             try:
                 create_method(name)
@@ -126,8 +147,9 @@ def evaluate(
             files,
             lambda k: [seed * 100_000 + k * 1000 + i for i in range(views)],
             chosen,
-            symmetric=lambda stem: stem in (YCB_SYMMETRIC if symmetric is None else symmetric),
+            symmetric=lambda stem: None if symmetric is None else stem in symmetric,
             occluders=occluders,
+            stress=stress,
             executor=executor,
             on_result=on_result,
         )
@@ -135,8 +157,25 @@ def evaluate(
     if evaluated:
         runs = [merge_runs(name, [r.runs[name] for r in evaluated]) for name in chosen]
         title = (
-            f"{views} rendered views per object (seed {seed}, {occluders} occluders); correct = error < 0.1 × diameter"
+            f"{views} rendered views per object (seed {seed}, stress {stress}, {occluders} occluders); "
+            "correct = error < 0.1 × diameter"
         )
-        symmetric_names = set(YCB_SYMMETRIC if symmetric is None else symmetric)
+        symmetric_names = {r.name for r in evaluated if r.symmetric}
         stdout_console().print(eval_table(runs, [r.name for r in evaluated], symmetric_names, title))
+        header, rows = confidence_rows({run.name: run.views for run in runs})
+        if rows:
+            stdout_console().print(rich_table(f"confidence at stress {stress}", header, "l" + "r" * 6, rows))
+        if reliability is not None:
+            with_confidence = [r for r in runs if summarise_confidence(r.views) is not None]
+            save_reliability_png(
+                reliability,
+                {
+                    r.name: (
+                        np.array([v.confidence for v in r.views]),
+                        np.array([v.errors.correct_add_or_s for v in r.views]),
+                    )
+                    for r in with_confidence
+                },
+            )
+            stdout_console().print(f"reliability diagram: {reliability}")
     exit_if_failed(results)

@@ -46,7 +46,7 @@ def demo(
     import secrets
 
     import edgepose
-    from edgepose.eval import YCB_SYMMETRIC, pose_errors, render_view
+    from edgepose.eval import pose_errors, render_view
     from edgepose.model import read_mesh
     from edgepose.report import demo_text
     from edgepose.viz import Frame, recorder, save_result_png
@@ -76,7 +76,7 @@ def demo(
         edgepose.estimate(view.cloud, codebook)  # the first call loads onnxruntime's kernels
         pose = edgepose.estimate(view.cloud, codebook)
     model_points = codebook.model.mesh_points
-    symmetric = name in YCB_SYMMETRIC
+    symmetric = codebook.symmetry.symmetric
     errors = pose_errors(model_points, pose.matrix, view.T_cam_obj, codebook.model.diameter, symmetric)
     text, caption = demo_text(name, origin, view, seed, pose, errors, symmetric)
     out.print(text)
@@ -158,7 +158,7 @@ def estimate(
     if T_true is not None:
         from edgepose.eval import pose_errors
 
-        errors = pose_errors(model_points, pose.matrix, T_true, book.model.diameter, symmetric=False)
+        errors = pose_errors(model_points, pose.matrix, T_true, book.model.diameter, book.symmetry.symmetric)
         result["errors"] = errors_json(errors)
     print(json_text(result))
 

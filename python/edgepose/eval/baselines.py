@@ -72,6 +72,8 @@ class LastRun:
     """Method-specific confidence: inlier fitness (Open3D), votes (PPF)."""
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds per stage."""
+    confidence: float = float("nan")
+    """Probability that the pose is correct (edgepose's ``Pose.confidence``; NaN for the peers)."""
 
 
 class Open3DBaseline:
@@ -315,6 +317,7 @@ class EdgePoseMethod:
             found=True,
             score=float(getattr(pose, "score", 0.0)),
             timings=dict(timings) if isinstance(timings, dict) else {},
+            confidence=float(getattr(pose, "confidence", float("nan"))),
         )
         return np.asarray(pose.matrix, dtype=np.float64)
 

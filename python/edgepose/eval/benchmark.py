@@ -17,8 +17,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from edgepose.confidence import TRUST_THRESHOLD
 from edgepose.eval.baselines import NO_POSE, PoseMethod
-from edgepose.eval.metrics import YCB_SYMMETRIC, PoseErrors, auc, pose_errors
+from edgepose.eval.metrics import PoseErrors, acceptance, auc, auroc, calibration, pose_errors
 from edgepose.eval.scenes import render_scene
 from edgepose.eval.stress import STRESS_LEVELS, Stress
 
@@ -37,6 +38,7 @@ class BenchObject:
     diameter: float
     """Metres."""
     symmetric: bool
+    """Judged with ADD-S in ADD(-S) (by default: when :func:`edgepose.symmetry.detect_symmetry` finds a symmetry)."""
     seeds: list[int]
     clouds: list[np.ndarray]
     """Per view: (N, 3) float64 camera-frame cloud, metres."""
@@ -62,6 +64,8 @@ class ViewResult:
     score: float
     T_est: np.ndarray
     error: str
+    confidence: float = float("nan")
+    """The method's probability that the pose is correct (edgepose; NaN for methods without one)."""
 
 
 @dataclass
@@ -98,8 +102,8 @@ def load_object(
     stress: Stress | str = "clean",
 ) -> BenchObject:
     """A mesh (file in metres or detected millimetres, or a Trimesh in metres)
-    and one rendered view per seed. ``symmetric`` defaults to membership of
-    :data:`YCB_SYMMETRIC` by name.
+    and one rendered view per seed. ``symmetric`` defaults to whether
+    :func:`edgepose.symmetry.detect_symmetry` finds a symmetry.
 
     At the ``clean`` stress level (the default) the views are
     :func:`edgepose.eval.render_view`'s, with ``occluders`` flat rectangles:
@@ -111,6 +115,7 @@ def load_object(
 
     from edgepose.eval.render import render_view
     from edgepose.model import load_model, read_mesh
+    from edgepose.symmetry import detect_symmetry
 
     stress = STRESS_LEVELS[stress] if isinstance(stress, str) else stress
     if isinstance(mesh, trimesh.Trimesh):
@@ -145,7 +150,7 @@ def load_object(
         mesh=mesh,
         points=model.mesh_points,
         diameter=model.diameter,
-        symmetric=name in YCB_SYMMETRIC if symmetric is None else symmetric,
+        symmetric=detect_symmetry(model).symmetric if symmetric is None else symmetric,
         seeds=list(seeds),
         clouds=clouds,
         poses=poses,
@@ -185,6 +190,7 @@ def run_method(
                 score=float(getattr(last, "score", 0.0)) if not error else 0.0,
                 T_est=T_est,
                 error=error,
+                confidence=float(getattr(last, "confidence", np.nan)) if not error else 0.0,
             )
             run.views.append(result)
             done.append(result)
@@ -224,6 +230,42 @@ def summarise(views: list[ViewResult]) -> Summary:
         median_ms=float(np.median(latency)),
         p90_ms=float(np.percentile(latency, 90)),
         failures=sum(bool(v.error) for v in views),
+    )
+
+
+@dataclass
+class ConfidenceSummary:
+    """How well a method's confidences tell its correct poses (ADD(-S)) from its wrong ones."""
+
+    views: int
+    correct: float
+    """Percent of views correct."""
+    auroc: float
+    """Area under the ROC curve (NaN when all views are correct or all wrong)."""
+    ece: float
+    """Expected calibration error, 10 bins."""
+    wrong_accepted: float
+    """Percent of wrong poses with confidence ≥ the trust threshold (NaN: none wrong)."""
+    correct_kept: float
+    """Percent of correct poses with confidence ≥ the trust threshold (NaN: none correct)."""
+    threshold: float = TRUST_THRESHOLD
+
+
+def summarise_confidence(views: list[ViewResult], threshold: float = TRUST_THRESHOLD) -> ConfidenceSummary | None:
+    """Confidence quality over ``views``; None when the method gives no confidences."""
+    p = np.array([v.confidence for v in views], dtype=np.float64)
+    if not len(p) or not np.isfinite(p).all():
+        return None
+    y = np.array([v.errors.correct_add_or_s for v in views], dtype=bool)
+    a = acceptance(p, y, threshold)
+    return ConfidenceSummary(
+        len(views),
+        100 * y.mean(),
+        auroc(p, y),
+        calibration(p, y).ece,
+        100 * a.wrong_accepted,
+        100 * a.correct_kept,
+        threshold,
     )
 
 

@@ -11,9 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: YCB objects judged with ADD-S in ADD(-S) (geometrically symmetric);
-#: banana, mustard_bottle and power_drill are asymmetric and judged with ADD.
-YCB_SYMMETRIC = frozenset({"master_chef_can", "cracker_box"})
+#: The shared YCB objects that are geometrically symmetric, by hand: a
+#: cross-check of :func:`edgepose.symmetry.detect_symmetry` in the tests (the
+#: evaluation uses the detected symmetries). The mustard bottle's mesh is the
+#: same turned 180° about its long axis to within 2 mm (only its label tells
+#: front from back); banana and power_drill are asymmetric.
+YCB_SYMMETRIC = frozenset({"master_chef_can", "cracker_box", "mustard_bottle"})
 
 #: A pose is correct when its metric is below this fraction of the diameter.
 CORRECT_FRACTION = 0.1
@@ -175,3 +178,86 @@ def _matrix(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
     if array.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
     return array
+
+
+# ------------------------------------------------------------ confidence quality
+
+
+def auroc(confidence: np.ndarray, correct: np.ndarray) -> float:
+    """Area under the ROC curve of ``confidence`` for telling correct poses
+    from wrong ones: the chance that a random correct pose scores above a
+    random wrong one (ties count half). NaN when either class is empty."""
+    p, y = _scored(confidence, correct)
+    pos, neg = p[y], p[~y]
+    if not len(pos) or not len(neg):
+        return float("nan")
+    order = np.argsort(p, kind="stable")
+    ranks = np.empty(len(p))
+    sorted_p = p[order]
+    # Average ranks (1-based) over ties.
+    starts = np.flatnonzero(np.r_[True, sorted_p[1:] != sorted_p[:-1]])
+    ends = np.r_[starts[1:], len(p)]
+    for s, e in zip(starts, ends):
+        ranks[order[s:e]] = (s + e + 1) / 2
+    return float((ranks[y].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """How well confidences match how often poses are right, in equal-width bins of confidence."""
+
+    edges: np.ndarray
+    """(B + 1,) bin edges, 0 to 1."""
+    count: np.ndarray
+    """(B,) poses per bin."""
+    mean_confidence: np.ndarray
+    """(B,) mean confidence per bin (NaN when empty)."""
+    accuracy: np.ndarray
+    """(B,) share of correct poses per bin (NaN when empty)."""
+    ece: float
+    """Expected calibration error: Σ (count / n) · |accuracy − mean confidence|."""
+
+
+def calibration(confidence: np.ndarray, correct: np.ndarray, bins: int = 10) -> Calibration:
+    """Reliability-diagram bins and the expected calibration error."""
+    p, y = _scored(confidence, correct)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.searchsorted(edges, p, side="right") - 1, 0, bins - 1)
+    count = np.bincount(which, minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_conf = np.bincount(which, weights=p, minlength=bins) / count
+        accuracy = np.bincount(which, weights=y.astype(float), minlength=bins) / count
+    filled = count > 0
+    ece = float(np.sum(count[filled] * np.abs(accuracy[filled] - mean_conf[filled])) / max(len(p), 1))
+    return Calibration(edges, count, mean_conf, accuracy, ece)
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    """What a confidence threshold lets through."""
+
+    threshold: float
+    wrong_accepted: float
+    """Share (0–1) of wrong poses with confidence ≥ threshold (NaN: no wrong poses)."""
+    correct_kept: float
+    """Share (0–1) of correct poses with confidence ≥ threshold (NaN: no correct poses)."""
+
+
+def acceptance(confidence: np.ndarray, correct: np.ndarray, threshold: float = 0.5) -> Acceptance:
+    p, y = _scored(confidence, correct)
+    accepted = p >= threshold
+
+    def share(mask: np.ndarray) -> float:
+        return float(accepted[mask].mean()) if mask.any() else float("nan")
+
+    return Acceptance(threshold, share(~y), share(y))
+
+
+def _scored(confidence: np.ndarray, correct: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    p = np.asarray(confidence, dtype=np.float64).ravel()
+    y = np.asarray(correct, dtype=bool).ravel()
+    if p.shape != y.shape:
+        raise ValueError(f"one correctness per confidence: {p.shape} vs {y.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError("confidences must be finite")
+    return p, y

@@ -1,0 +1,167 @@
+"""``Pose.confidence``: the probability that a pose is correct, i.e. within
+ADD(-S) < 0.1 × diameter of the truth (ADD-S for an object with a detected
+symmetry).
+
+It is a logistic model over a few scoring terms that :func:`edgepose.estimate`
+computes anyway (the *evidence*, :data:`FEATURES`), fitted on training shapes
+in procedural scenes, clean and stressed, never on the benchmark objects
+(``python -m export.confidence``). The fitted weights ship with the networks,
+in ``models/manifest.json`` under ``confidence``, with the features' names
+and definitions. Trust a pose at ``confidence >= TRUST_THRESHOLD``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: The documented default rule: trust a pose whose confidence is at least this.
+TRUST_THRESHOLD = 0.5
+
+#: The evidence, by name: what each term means. Fractions are of the observed
+#: points the hypotheses were scored on (``settings.hypothesis_points``), at
+#: the pose; d is the object's diameter.
+FEATURES: dict[str, str] = {
+    "inlier_fraction": "share of observed points within hypothesis_inlier_distance (0.02 d) of the model, 0-1",
+    "loose_inlier_fraction": "share of observed points within doubt_inlier_distance (0.04 d) of the model, 0-1",
+    "fit": "mean observed-point distance to the model, each truncated at 0.02 d, over 0.02 d, 0-1",
+    "free_space_violation": "share of the model's camera-facing points in front of what the camera saw, 0-1",
+    "score": "cosine similarity of the chosen codebook view's code to the observed one, -1-1",
+    "searched_twice": "1 when the first search's pose was doubtful and a wider search followed, else 0",
+    "refined": "1 when ICP refined the pose, else 0",
+    "margin": "inlier fraction minus free-space violation of the chosen hypothesis minus that of the best "
+    "rival hypothesis more than 0.1 d away (symmetries aside); 1 when there is none",
+    "off_silhouette": "share of the model's camera-facing points that land where nothing was observed, 0-1",
+    "observed_extent": "diagonal of the kept observed points' bounding box over d (how much of the object is seen)",
+}
+
+
+def _value(v: float) -> float:
+    """The feature as it is."""
+    return float(v)
+
+
+def _unexplained(fraction: float) -> float:
+    """log of the share of points left unexplained (floored at 1 %)."""
+    return math.log(max(1.0 - fraction, 0.0) + 0.01)
+
+
+def _log_share(share: float) -> float:
+    """log of a share (floored at 1 %)."""
+    return math.log(share + 0.01)
+
+
+def _clipped_margin(margin: float) -> float:
+    """The margin where it matters: −0.2 (a rival explains more) to 0.3 (clearly ahead)."""
+    return min(max(margin, -0.2), 0.3)
+
+
+def _no_rival(margin: float) -> float:
+    """1 when no rival hypothesis was refined (margin 1), else 0."""
+    return float(margin >= 0.99)
+
+
+def _capped_extent(extent: float) -> float:
+    """Observed extent up to 1.2 d (beyond, the whole object is in view)."""
+    return min(extent, 1.2)
+
+
+#: The terms each feature enters the model as (logistic regression is linear in them).
+TERMS: dict[str, tuple[Callable[[float], float], ...]] = {
+    "inlier_fraction": (_unexplained,),
+    "loose_inlier_fraction": (_unexplained,),
+    "fit": (_value,),
+    "free_space_violation": (_log_share,),
+    "score": (_value,),
+    "searched_twice": (_value,),
+    "refined": (_value,),
+    "margin": (_value, _clipped_margin, _no_rival),
+    "off_silhouette": (_value, _log_share),
+    "observed_extent": (_value, _capped_extent),
+}
+
+
+def feature_vector(evidence: dict[str, float], names: tuple[str, ...]) -> np.ndarray:
+    """The model's inputs: the terms of each named feature of ``evidence``, in order."""
+    return np.array([term(evidence[n]) for n in names for term in TERMS[n]], dtype=np.float64)
+
+
+def term_names(names: tuple[str, ...]) -> list[str]:
+    """``feature:transform`` for each model input, in :func:`feature_vector`'s order."""
+    return [f"{n}:{term.__name__.strip('_')}" for n in names for term in TERMS[n]]
+
+
+@dataclass(frozen=True)
+class ConfidenceModel:
+    """Logistic regression over transformed, standardised evidence."""
+
+    features: tuple[str, ...]
+    mean: np.ndarray
+    """(T,) of each term (:func:`feature_vector`) over the fitting data."""
+    scale: np.ndarray
+    """(T,) their standard deviations."""
+    weights: np.ndarray
+    """(T,) on the standardised terms."""
+    bias: float
+
+    def probability(self, evidence: dict[str, float]) -> float:
+        """P(correct | evidence), 0–1."""
+        z = (feature_vector(evidence, self.features) - self.mean) / self.scale
+        return float(1.0 / (1.0 + math.exp(-float(np.clip(z @ self.weights + self.bias, -50, 50)))))
+
+    def to_manifest(self) -> dict[str, Any]:
+        return {
+            "features": {n: FEATURES[n] for n in self.features},
+            "terms": term_names(self.features),
+            "mean": self.mean.tolist(),
+            "scale": self.scale.tolist(),
+            "weights": self.weights.tolist(),
+            "bias": self.bias,
+        }
+
+    @classmethod
+    def from_manifest(cls, info: dict[str, Any]) -> ConfidenceModel:
+        """From the manifest's ``confidence`` entry; ``ValueError`` naming what is wrong."""
+        names = tuple(info["features"])
+        unknown = [n for n in names if n not in FEATURES]
+        if unknown:
+            raise ValueError(f"confidence model uses features this edgepose does not compute: {unknown}")
+        mean, scale, weights = (np.asarray(info[k], dtype=np.float64) for k in ("mean", "scale", "weights"))
+        bias = float(info["bias"])
+        terms = len(term_names(names))
+        if not all(a.shape == (terms,) for a in (mean, scale, weights)):
+            raise ValueError(f"confidence model: mean/scale/weights must each hold {terms} numbers (one per term)")
+        if not (np.isfinite([*mean, *scale, *weights, bias]).all() and (scale > 0).all()):
+            raise ValueError("confidence model: numbers must be finite and scales positive")
+        return cls(names, mean, scale, weights, bias)
+
+
+def evidence_of(
+    inlier_fraction: float,
+    loose_inlier_fraction: float,
+    fit_ratio: float,
+    free_space_violation: float,
+    score: float,
+    searches: int,
+    refined: bool,
+    margin: float,
+    off_silhouette: float,
+    observed_extent: float,
+) -> dict[str, float]:
+    """The evidence (:data:`FEATURES`) as a dict of floats."""
+    return {
+        "inlier_fraction": float(inlier_fraction),
+        "loose_inlier_fraction": float(loose_inlier_fraction),
+        "fit": float(fit_ratio),
+        "free_space_violation": float(free_space_violation),
+        "score": float(score),
+        "searched_twice": float(searches > 1),
+        "refined": float(refined),
+        "margin": float(margin),
+        "off_silhouette": float(off_silhouette),
+        "observed_extent": float(observed_extent),
+    }

@@ -1,0 +1,92 @@
+"""Pose.confidence: the shipped calibrated model, the evidence it reads and
+the metrics that judge it (AUROC, calibration, acceptance)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import edgepose
+import numpy as np
+import pytest
+import trimesh
+from edgepose.confidence import FEATURES, TRUST_THRESHOLD, ConfidenceModel
+from edgepose.encoder import MODELS_DIR, Encoder
+from edgepose.eval import render_view
+from edgepose.eval.metrics import acceptance, auroc, calibration
+
+
+def test_shipped_networks_carry_a_confidence_model_over_known_features():
+    manifest = json.loads((MODELS_DIR / "manifest.json").read_text())
+    model = ConfidenceModel.from_manifest(manifest["confidence"])
+    assert set(model.features) <= set(FEATURES)
+    assert manifest["confidence"]["fitted_on"]["data"].endswith("never YCB")
+    assert edgepose.encoder.default_encoder().confidence is not None
+
+
+def test_a_clean_view_is_trusted_and_every_pose_has_its_evidence(drill):
+    mesh, codebook = drill
+    for seed in (1, 2, 3):
+        pose = edgepose.estimate(render_view(mesh, seed=seed).cloud, codebook)
+        assert set(pose.evidence) == set(FEATURES)
+        assert TRUST_THRESHOLD <= pose.confidence <= 1.0
+        assert not pose.ambiguous
+
+
+def test_another_objects_cloud_is_not_trusted(drill):
+    _, codebook = drill
+    # A box about the drill's size: the drill's codebook can only explain it badly.
+    box = trimesh.creation.box([0.05, 0.15, 0.2])
+    for seed in (1, 2, 3):
+        pose = edgepose.estimate(render_view(box, seed=seed).cloud, codebook)
+        assert 0.0 <= pose.confidence < TRUST_THRESHOLD, pose.evidence
+
+
+def test_a_turned_pose_is_less_trusted_than_the_right_one(drill):
+    """The same scoring terms for the estimate and for a wrong pose 90° off:
+    the probability model must prefer the right one."""
+    from edgepose.confidence import evidence_of
+
+    model = edgepose.encoder.default_encoder().confidence
+    good = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2)
+    bad = evidence_of(0.6, 0.8, 0.8, 0.2, 0.7, 2, True, 0.0, 0.4, 1.2)
+    assert model.probability(good) > 0.9 and model.probability(bad) < 0.2
+
+
+def test_a_malformed_confidence_model_is_a_model_files_error(tmp_path):
+    for name in ("encoder.onnx", "irr.onnx"):
+        shutil.copy(MODELS_DIR / name, tmp_path / name)
+    manifest = json.loads((MODELS_DIR / "manifest.json").read_text())
+    manifest["confidence"]["features"] = {"mystery": "a term no edgepose computes"}
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(edgepose.ModelFilesError, match="mystery"):
+        Encoder(tmp_path)
+    del manifest["confidence"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    assert Encoder(tmp_path).confidence is None  # networks without one: confidence is NaN
+
+
+def test_auroc_counts_ordered_pairs_and_ties():
+    assert auroc([0.9, 0.8, 0.2, 0.1], [True, True, False, False]) == 1.0
+    assert auroc([0.1, 0.2, 0.8, 0.9], [True, True, False, False]) == 0.0
+    assert auroc([0.5, 0.5], [True, False]) == 0.5
+    # Pairs (correct, wrong): (0.9,0.3) (0.9,0.6) (0.4,0.3) (0.4,0.6) -> 3 of 4 ordered.
+    assert auroc([0.9, 0.4, 0.3, 0.6], [True, True, False, False]) == 0.75
+    assert np.isnan(auroc([0.3, 0.4], [True, True]))
+
+
+def test_calibration_bins_and_expected_error():
+    p = np.array([0.05, 0.05, 0.95, 0.95, 0.55, 0.55])
+    y = np.array([False, False, True, False, True, True])
+    c = calibration(p, y, bins=10)
+    assert c.count.sum() == 6 and c.count[0] == 2 and c.count[9] == 2 and c.count[5] == 2
+    # |0 - .05|·2 + |.5 - .95|·2 + |1 - .55|·2, over 6.
+    assert c.ece == pytest.approx((0.1 + 0.9 + 0.9) / 6)
+    assert c.accuracy[9] == 0.5 and np.isnan(c.accuracy[3])
+
+
+def test_acceptance_at_a_threshold():
+    a = acceptance([0.9, 0.6, 0.4, 0.7, 0.2], [True, True, True, False, False], threshold=0.5)
+    assert a.correct_kept == pytest.approx(2 / 3) and a.wrong_accepted == pytest.approx(1 / 2)
+    with pytest.raises(ValueError, match="finite"):
+        acceptance([np.nan], [True])

@@ -1,0 +1,126 @@
+"""Symmetry detection (edgepose.symmetry) on meshes made here and on the
+shared YCB meshes, stored in codebooks, carried by poses and used by ADD(-S)."""
+
+from __future__ import annotations
+
+import json
+
+import edgepose
+import numpy as np
+import pytest
+import trimesh
+from edgepose import detect_symmetry, load_model
+from edgepose.codebook import Codebook, CodebookError
+from edgepose.eval import YCB_SYMMETRIC, add_s, pose_errors
+from edgepose.symmetry import NO_SYMMETRY, Symmetry
+
+
+def placed(mesh: trimesh.Trimesh, seed: int) -> tuple[trimesh.Trimesh, np.ndarray]:
+    """``mesh`` turned and moved at random (metres), and the transform used."""
+    rng = np.random.default_rng(seed)
+    T = trimesh.transformations.random_rotation_matrix(rng.random(3))
+    T[:3, 3] = rng.uniform(-0.2, 0.2, 3)
+    return mesh.copy().apply_transform(T), T
+
+
+def angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def maps_onto_itself(symmetry: Symmetry, mesh: trimesh.Trimesh) -> float:
+    """Largest ADD-S (metres) of the mesh's points under every turn of the group."""
+    points = load_model(mesh).mesh_points
+    return max(add_s(points, T, np.eye(4)) for T in symmetry.transforms(steps=12))
+
+
+def test_cylinder_has_a_continuous_axis_and_a_flip():
+    mesh, T = placed(trimesh.creation.cylinder(radius=0.03, height=0.12, sections=64), seed=1)
+    s = detect_symmetry(load_model(mesh))
+    assert len(s.continuous) == 1 and len(s.discrete) == 1
+    axis, point = s.continuous[0, :3], s.continuous[0, 3:]
+    assert abs(axis @ T[:3, 2]) > np.cos(np.radians(1.0))  # the cylinder's z, turned
+    assert np.linalg.norm(np.cross(point - T[:3, 3], T[:3, 2])) < 1e-3  # the line passes through its centre
+    assert angle_deg(s.discrete[0][:3, :3]) == pytest.approx(180, abs=1.0)
+    assert maps_onto_itself(s, mesh) < 2e-3
+    assert s.symmetric and "continuous" in s.describe()
+
+
+def test_cone_has_a_continuous_axis_only():
+    mesh, T = placed(trimesh.creation.cone(radius=0.04, height=0.1, sections=64), seed=2)
+    s = detect_symmetry(load_model(mesh))
+    assert len(s.continuous) == 1 and len(s.discrete) == 0
+    assert abs(s.continuous[0, :3] @ T[:3, 2]) > np.cos(np.radians(1.0))
+
+
+def test_box_has_three_half_turns_about_its_face_normals():
+    mesh, T = placed(trimesh.creation.box([0.05, 0.1, 0.2]), seed=3)
+    s = detect_symmetry(load_model(mesh))
+    assert len(s.continuous) == 0 and len(s.discrete) == 3
+    for turn in s.discrete:
+        assert angle_deg(turn[:3, :3]) == pytest.approx(180, abs=1.0)
+        w, v = np.linalg.eig(turn[:3, :3])
+        axis = np.real(v[:, np.argmin(np.abs(w - 1))])
+        assert max(abs(axis @ T[:3, k]) for k in range(3)) > np.cos(np.radians(1.0))
+    assert maps_onto_itself(s, mesh) < 2e-3
+
+
+def test_square_prism_and_cube_groups_are_complete():
+    square = detect_symmetry(load_model(placed(trimesh.creation.box([0.05, 0.05, 0.2]), seed=4)[0]))
+    cube = detect_symmetry(load_model(placed(trimesh.creation.box([0.1, 0.1, 0.1]), seed=5)[0]))
+    assert len(square.discrete) == 7  # the dihedral group of order 8, identity aside
+    assert len(cube.discrete) == 23  # the cube's 24 turns
+
+
+def test_asymmetric_parts_have_none(drill):
+    mesh, codebook = drill
+    assert not detect_symmetry(codebook.model).symmetric
+    # A box with a peg off-centre on one face: no turn maps it onto itself.
+    peg = trimesh.creation.box([0.02, 0.02, 0.03])
+    peg.apply_translation([0.03, 0.02, 0.065])
+    lopsided = trimesh.util.concatenate([trimesh.creation.box([0.1, 0.08, 0.1]), peg])
+    assert detect_symmetry(load_model(lopsided)).describe() == "none"
+
+
+def test_shared_ycb_meshes_match_the_hand_list(ycb_dir):
+    for path in sorted(ycb_dir.glob("*.ply")):
+        s = detect_symmetry(load_model(path))
+        assert s.symmetric == (path.stem in YCB_SYMMETRIC), (path.stem, s.describe())
+    assert len(detect_symmetry(load_model(ycb_dir / "master_chef_can.ply")).continuous) == 1
+    assert len(detect_symmetry(load_model(ycb_dir / "cracker_box.ply")).discrete) == 3
+
+
+def test_codebook_stores_and_checks_its_symmetry(tmp_path):
+    mesh, _ = placed(trimesh.creation.cylinder(radius=0.03, height=0.1, sections=48), seed=6)
+    book = edgepose.build_codebook(mesh, views=60)
+    assert book.symmetry.symmetric and "symmetry" in book.timings
+    book.save(tmp_path / "can.codebook")
+    loaded = Codebook.load(tmp_path / "can.codebook")
+    assert np.allclose(loaded.symmetry.continuous, book.symmetry.continuous, atol=1e-6)
+    assert np.allclose(loaded.symmetry.discrete, book.symmetry.discrete, atol=1e-6)
+    # A pose carries the codebook's symmetries.
+    view = edgepose.eval.render_view(mesh, seed=3)
+    pose = edgepose.estimate(view.cloud, book, k=4)
+    assert pose.ambiguous and pose.symmetry is book.symmetry
+    assert pose_errors(book.model.mesh_points, pose.matrix, view.T_cam_obj, book.model.diameter, True).correct_add_or_s
+
+
+def test_malformed_symmetries_are_rejected():
+    with pytest.raises(ValueError, match="rigid turn"):
+        Symmetry.from_json({"discrete": [list(np.eye(4).ravel() * 2)], "continuous": []})
+    with pytest.raises(ValueError, match="unit vector"):
+        Symmetry.from_json({"discrete": [], "continuous": [[0, 0, 2, 0, 0, 0]]})
+    with pytest.raises(ValueError, match="NaN"):
+        Symmetry.from_json({"discrete": [], "continuous": [[0, 0, float("nan"), 0, 0, 0]]})
+    assert Symmetry.from_json(json.loads(json.dumps(NO_SYMMETRY.to_json()))).describe() == "none"
+
+
+def test_a_codebook_with_a_corrupt_symmetry_entry_does_not_load(tmp_path, drill):
+    from edgepose.codebook import _checksum
+
+    _, book = drill
+    tensors = book._tensors()
+    metadata = book._metadata(tensors)
+    metadata["symmetry"] = json.dumps({"discrete": [[1.0] * 16], "continuous": []})
+    metadata["checksum"] = _checksum(tensors, metadata)
+    with pytest.raises(CodebookError, match="rigid turn"):
+        Codebook._from_parts(tensors, metadata, edgepose.encoder.default_encoder(), "bad.codebook")
