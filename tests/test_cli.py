@@ -75,7 +75,7 @@ def test_module_entry_point_matches_console_script():
 def test_help_lists_the_commands_with_worked_examples():
     out = run("--help")
     assert out.returncode == 0
-    for command in ("demo", "build", "estimate", "eval"):
+    for command in ("demo", "build", "estimate", "track", "eval"):
         assert f"edgepose {command}" in out.stdout
     assert "--K" in out.stdout and "--mask" in out.stdout
 
@@ -302,3 +302,44 @@ def test_eval_prints_the_accuracy_table(ycb_dir):
 
 def test_eval_refuses_an_unknown_method(ycb_dir):
     fails_cleanly(run("eval", str(ycb_dir / "banana.ply"), "--methods", "magic"), "unknown methods")
+
+
+# ----------------------------------------------------------------- track
+
+
+def test_track_follows_depth_frames_and_reports_a_bad_frame(drill, tmp_path):
+    import csv
+
+    import trimesh
+    from PIL import Image
+
+    codebook, view = drill
+    mesh = trimesh.load(SHIPPED / "power_drill.ply", process=False)
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "masks").mkdir()
+    truths = []
+    T = view.T_cam_obj
+    for i in range(6):
+        T = T.copy()
+        T[:3, :3] = trimesh.transformations.rotation_matrix(np.radians(3.0), [0, 1, 0])[:3, :3] @ T[:3, :3]
+        frame = render_view(mesh, T_cam_obj=T, seed=i)
+        mask = frame.mask if i != 3 else np.zeros_like(frame.mask)  # frame 3: the object is lost
+        Image.fromarray(np.round(frame.depth * 1000).astype(np.uint16)).save(tmp_path / "frames" / f"{i:04d}.png")
+        Image.fromarray(mask.astype(np.uint8) * 255).save(tmp_path / "masks" / f"{i:04d}.png")
+        truths.append(T)
+    K = " ".join(str(x) for x in view.camera.K.ravel())
+    out = run(
+        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", K, "--masks", str(tmp_path / "masks"),
+        "-o", str(tmp_path / "poses.csv"),
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "6 frames: 4 tracked, 1 initialised, 0 re-initialised, 1 without a pose" in out.stdout
+    rows = list(csv.DictReader((tmp_path / "poses.csv").open()))
+    assert [r["mode"] for r in rows[:3]] == ["initialised", "tracked", "tracked"]
+    assert rows[3]["mode"].startswith("error: ") and rows[3]["m00"] == ""
+    for row, T_true in zip(rows, truths):
+        if row["m00"]:
+            T_est = np.array([float(row[f"m{r}{c}"]) for r in range(4) for c in range(4)]).reshape(4, 4)
+            e = pose_errors(codebook.model.mesh_points, T_est, T_true, codebook.model.diameter, False)
+            assert e.correct_add_or_s and float(row["confidence"]) >= 0.5
+    fails_cleanly(run("track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames")), "need --K")

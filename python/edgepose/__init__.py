@@ -17,6 +17,7 @@ from edgepose.model import StandardModel, detect_scale, load_model, model_from_p
 from edgepose.pose import Pose, estimate
 from edgepose.settings import EstimateSettings
 from edgepose.symmetry import Symmetry, detect_symmetry
+from edgepose.track import Tracker, TrackSettings
 from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
 
 __all__ = [
@@ -30,6 +31,8 @@ __all__ = [
     "Pose",
     "Symmetry",
     "TRUST_THRESHOLD",
+    "TrackSettings",
+    "Tracker",
     "build_codebook",
     "cloud_from_depth",
     "estimate",

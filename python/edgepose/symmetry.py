@@ -19,6 +19,7 @@ import numpy as np
 
 from edgepose import _core
 from edgepose.model import StandardModel
+from edgepose.views import rotation_about, rotation_angle, rotation_axis
 
 #: Turns tried about each candidate axis: n-fold for these n ...
 ORDERS = (2, 3, 4, 5, 6, 8)
@@ -135,7 +136,7 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
         )
 
     probes = [(a, angle) for a in axes for angle in np.radians([*CONTINUOUS_PROBES_DEG, *(360 / n for n in ORDERS)])]
-    R = np.stack([_rotation(a, angle) for a, angle in probes])
+    R = np.stack([rotation_about(a, angle) for a, angle in probes])
     t = centroid - R @ centroid
     # Screen loosely, polish the survivors by ICP, then judge strictly on every point.
     near = index.distances(screen, R, t, True).mean(axis=1) <= SCREEN_MEAN_SPACINGS * model.spacing
@@ -156,8 +157,8 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
         # The polished axis, from the polished turn of largest angle, is
         # tried at the three odd angles (ICP could slide along a continuous
         # symmetry, or snap an odd angle to a hexagon's 60°).
-        T = max(found, key=lambda T: _angle_of(T[:3, :3]))
-        axis, point = _axis_of(T[:3, :3]), _point_on_axis(T, centroid)
+        T = max(found, key=lambda T: rotation_angle(T[:3, :3]))
+        axis, point = rotation_axis(T[:3, :3]), _point_on_axis(T, centroid)
         odd = np.stack([_turn_about(axis, point, a) for a in np.radians(CONTINUOUS_PROBES_DEG)])
         if fits(odd[:, :3, :3], odd[:, :3, 3]).all() and all(
             abs(axis @ c) < np.cos(np.radians(SAME_TURN_DEG)) for c, _ in continuous
@@ -166,7 +167,7 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     generators = [
         T
         for i, T in sorted(turns.items())
-        if not any(abs(_axis_of(T[:3, :3]) @ c) > np.cos(np.radians(SAME_TURN_DEG)) for c, _ in continuous)
+        if not any(abs(rotation_axis(T[:3, :3]) @ c) > np.cos(np.radians(SAME_TURN_DEG)) for c, _ in continuous)
     ]
     if continuous:
         # Turns about the axis are covered; any flip across it is the same
@@ -200,7 +201,7 @@ def _closure(generators: list[np.ndarray]) -> list[np.ndarray]:
     group = [np.eye(4)]
 
     def known(T: np.ndarray) -> bool:
-        return any(_angle_of(T[:3, :3].T @ G[:3, :3]) < np.radians(SAME_TURN_DEG) for G in group)
+        return any(rotation_angle(T[:3, :3].T @ G[:3, :3]) < np.radians(SAME_TURN_DEG) for G in group)
 
     frontier = []
     for g in generators:
@@ -219,29 +220,11 @@ def _closure(generators: list[np.ndarray]) -> list[np.ndarray]:
     return group[1:]
 
 
-def _angle_of(R: np.ndarray) -> float:
-    """Turn angle of a rotation, radians in [0, π]."""
-    return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
-
-
-def _axis_of(R: np.ndarray) -> np.ndarray:
-    """Unit axis of a rotation (the eigenvector of eigenvalue 1)."""
-    w, v = np.linalg.eig(R)
-    axis = np.real(v[:, np.argmin(np.abs(w - 1))])
-    return axis / np.linalg.norm(axis)
-
-
 def _point_on_axis(T: np.ndarray, near: np.ndarray) -> np.ndarray:
     """The point of turn ``T``'s fixed line closest to ``near``."""
     R, t = T[:3, :3], T[:3, 3]
     q = np.linalg.lstsq(np.eye(3) - R, t - (np.eye(3) - R) @ near, rcond=1e-6)[0]
     return near + q
-
-
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues: the turn by ``angle`` (radians) about the unit ``axis``."""
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
 def _transform_from(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -252,5 +235,5 @@ def _transform_from(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def _turn_about(axis: np.ndarray, point: np.ndarray, angle: float) -> np.ndarray:
     """4 × 4 turn by ``angle`` (radians) about the line through ``point`` along ``axis``."""
-    R = _rotation(axis, angle)
+    R = rotation_about(axis, angle)
     return _transform_from(R, point - R @ point)

@@ -66,3 +66,21 @@ def rotation_about_z(angles: np.ndarray) -> np.ndarray:
     R = np.zeros((*angles.shape, 3, 3))
     R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
     return R
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` (radians) about the unit ``axis`` (Rodrigues)."""
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Turn angle of a rotation, radians in [0, π]."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def rotation_axis(R: np.ndarray) -> np.ndarray:
+    """Unit axis of a rotation (the eigenvector of eigenvalue 1)."""
+    w, v = np.linalg.eig(R)
+    axis = np.real(v[:, np.argmin(np.abs(w - 1))])
+    return axis / np.linalg.norm(axis)

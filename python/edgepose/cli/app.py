@@ -42,8 +42,12 @@ EXAMPLES = """
   [cyan]edgepose estimate -c mug.codebook depth.png --mask m.png \\
       --K "572.4 0 325.3 0 573.6 242 0 0 1" --bop-csv results.csv[/cyan]
 
-  [dim]# accuracy and latency on rendered views with known poses[/dim]
+  [dim]# one object through a sequence of depth frames (PNGs + masks of the same names); poses.csv[/dim]
+  [cyan]edgepose track -c mug.codebook frames/ --K cam.json --masks masks/ -o poses.csv[/cyan]
+
+  [dim]# accuracy, latency and confidence quality on rendered views with known poses[/dim]
   [cyan]edgepose eval ../shared/data/ycb --views 20[/cyan]
+  [cyan]edgepose eval ../shared/data/ycb --stress visible70 --reliability rel.png[/cyan]
 
   [dim]# versions; proves the compiled core and the networks load[/dim]
   [cyan]edgepose --version[/cyan]

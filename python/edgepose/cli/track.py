@@ -1,0 +1,140 @@
+"""``edgepose track``: one object's pose through a sequence of frames.
+
+Units are metres; poses are ``T_cam_obj``, camera frame as OpenCV.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from edgepose.cli.app import Failure, RerunOption, RrdOption, handle_errors, stdout_console
+from edgepose.cloud import DEPTH_SCALE_MM
+
+FRAME_SUFFIXES = (".png", ".npy", ".ply", ".pcd")
+
+
+def track(
+    frames: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Frames in order: 16-bit depth .png (with --K and --masks) or .npy/.ply/.pcd clouds (metres), "
+            "or folders of them (sorted by name)."
+        ),
+    ],
+    codebook: Annotated[Path, typer.Option("-c", "--codebook", help="The object's codebook (edgepose build).")],
+    K: Annotated[
+        str | None, typer.Option("--K", help="Depth camera intrinsics: a JSON file or 9 numbers (row-major 3×3).")
+    ] = None,
+    masks: Annotated[
+        Path | None,
+        typer.Option(
+            help="The object's masks for depth frames: a folder of PNGs named as the frames, or one PNG for all."
+        ),
+    ] = None,
+    depth_scale: Annotated[
+        float, typer.Option(help="Depth units per metre (1000 for millimetre PNGs).")
+    ] = DEPTH_SCALE_MM,
+    out: Annotated[Path, typer.Option("-o", "--out", help="Poses CSV to write.")] = Path("poses.csv"),
+    rerun: RerunOption = False,
+    rrd: RrdOption = None,
+) -> None:
+    """Track an object through frames; write one pose per frame to a CSV.
+
+    The first frame is estimated, later ones are tracked from the last pose (a few ms) and estimated again when the
+    tracked pose fails its check. CSV columns: frame, the 4×4 T_cam_obj row-major (m00 … m33, metres), mode
+    (initialised, tracked, reinitialised, or error with the reason), confidence, ms. Ends with a summary line.
+    """
+    import numpy as np
+
+    import edgepose
+    from edgepose import io
+    from edgepose.viz import Frame, recorder
+
+    with handle_errors():
+        book = edgepose.Codebook.load(codebook)
+        paths = _frame_paths(frames)
+        depth_frames = [p for p in paths if p.suffix.lower() == ".png"]
+        camera = None
+        if depth_frames:
+            if K is None or masks is None:
+                raise Failure("depth frames (.png) need --K (intrinsics) and --masks (the object's pixels)")
+            camera = io.parse_intrinsics(K)
+        elif K is not None or masks is not None:
+            raise Failure("--K and --masks apply to depth frames (.png) only")
+        tracker = edgepose.Tracker(book)
+        log = recorder(spawn=rerun, save=rrd)
+        model_points = book.model.mesh_points
+        rows, times, modes = [], [], []
+        for i, path in enumerate(paths):
+            depth = None
+            if path.suffix.lower() == ".png":
+                assert camera is not None and masks is not None  # checked above
+                depth = io.read_depth_png(path)
+                mask = io.read_mask_png(_mask_for(path, masks))
+                cloud = edgepose.cloud_from_depth(depth, camera, mask, depth_scale=depth_scale)
+            else:
+                cloud = io.read_cloud(path)
+            try:
+                pose = tracker.update(cloud)
+            except edgepose.EdgePoseError as e:  # an empty or bad frame: reported, the track goes on
+                rows.append([i, path.name, *([""] * 16), f"error: {e}", "", ""])
+                modes.append("error")
+                continue
+            ms = pose.timings["total"] * 1e3
+            times.append(ms)
+            modes.append(pose.mode)
+            rows.append(
+                [
+                    i,
+                    path.name,
+                    *(f"{v:.8f}" for v in pose.matrix.ravel()),
+                    pose.mode,
+                    f"{pose.confidence:.4f}",
+                    f"{ms:.3f}",
+                ]
+            )
+            log.log(codebook.stem, Frame(cloud, model_points, pose.matrix, K=camera, depth=depth))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with out.open("w", newline="") as f:
+            writer = csv.writer(f, lineterminator="\n")
+            writer.writerow(
+                ["frame", "file", *(f"m{r}{c}" for r in range(4) for c in range(4)), "mode", "confidence", "ms"]
+            )
+            writer.writerows(rows)
+    counts = {m: modes.count(m) for m in ("initialised", "tracked", "reinitialised", "error")}
+    tracked = [t for t, m in zip(times, [m for m in modes if m != "error"]) if m == "tracked"]
+    stdout_console().print(
+        f"{len(paths)} frames: {counts['tracked']} tracked, {counts['initialised']} initialised, "
+        f"{counts['reinitialised']} re-initialised, {counts['error']} without a pose; "
+        f"median {np.median(times) if times else float('nan'):.2f} ms per frame"
+        f"{f', tracked {np.median(tracked):.2f} ms' if tracked else ''}; poses in {out}"
+    )
+
+
+def _frame_paths(frames: list[Path]) -> list[Path]:
+    """The frame files, folders expanded (their frame files sorted by name)."""
+    paths: list[Path] = []
+    for f in frames:
+        if f.is_dir():
+            paths += sorted(p for p in f.iterdir() if p.suffix.lower() in FRAME_SUFFIXES)
+        elif f.is_file():
+            paths.append(f)
+        else:
+            raise Failure(f"{f}: no such file or folder")
+    if not paths:
+        raise Failure("no frames (.png, .npy, .ply, .pcd) found")
+    return paths
+
+
+def _mask_for(frame: Path, masks: Path) -> Path:
+    """The mask of a depth frame: the same name in a masks folder, or the one mask file."""
+    if masks.is_dir():
+        mask = masks / frame.name
+        if not mask.is_file():
+            raise Failure(f"{frame.name}: no mask {mask}")
+        return mask
+    return masks

@@ -1,0 +1,94 @@
+"""edgepose.Tracker: tracked frames, re-initialisation, bad frames, threads."""
+
+from __future__ import annotations
+
+import threading
+
+import edgepose
+import numpy as np
+import pytest
+import trimesh
+from edgepose.eval import pose_errors, render_view
+
+
+def turned(T: np.ndarray, degrees: float, axis=(0.0, 1.0, 0.0), shift=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """``T`` turned about the object's own centre (camera frame axis) and shifted, metres."""
+    R = trimesh.transformations.rotation_matrix(np.radians(degrees), axis)[:3, :3]
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = T[:3, 3] + np.asarray(shift)
+    return out
+
+
+def add_mm(codebook, pose, T_true) -> float:
+    return 1e3 * pose_errors(codebook.model.mesh_points, pose.matrix, T_true, codebook.model.diameter, False).add
+
+
+def test_a_static_object_tracked_for_200_frames_stays_within_1_mm(drill):
+    mesh, codebook = drill
+    T = render_view(mesh, seed=3).T_cam_obj
+    tracker = edgepose.Tracker(codebook)
+    modes, errors = [], []
+    for frame in range(200):
+        pose = tracker.update(render_view(mesh, T_cam_obj=T, seed=1000 + frame).cloud)
+        modes.append(pose.mode)
+        errors.append(add_mm(codebook, pose, T))
+    assert modes[0] == "initialised" and set(modes[1:]) == {"tracked"}
+    assert max(errors) < 1.0, max(errors)
+    assert tracker.last is pose and pose.searches == 0 and pose.confidence >= edgepose.TRUST_THRESHOLD
+
+
+def test_smooth_motion_is_tracked_and_a_jump_reinitialises(drill):
+    mesh, codebook = drill
+    T = render_view(mesh, seed=5).T_cam_obj
+    tracker = edgepose.Tracker(codebook)
+    for frame in range(15):  # 4°/frame and 4 mm/frame: 120°/s and 0.12 m/s at 30 fps
+        T = turned(T, 4.0, shift=(0.004, 0.0, 0.0))
+        pose = tracker.update(render_view(mesh, T_cam_obj=T, seed=frame).cloud)
+        assert add_mm(codebook, pose, T) < 0.1 * codebook.model.diameter * 1e3
+        assert pose.mode == ("initialised" if frame == 0 else "tracked")
+    # Turned 150° between two frames: far beyond ICP's reach.
+    T = turned(T, 150.0, axis=(1.0, 0.0, 0.0))
+    pose = tracker.update(render_view(mesh, T_cam_obj=T, seed=99).cloud)
+    assert pose.mode == "reinitialised"
+    assert add_mm(codebook, pose, T) < 0.1 * codebook.model.diameter * 1e3
+
+
+def test_a_bad_frame_raises_and_leaves_the_tracker_as_it_was(drill):
+    mesh, codebook = drill
+    T = render_view(mesh, seed=7).T_cam_obj
+    tracker = edgepose.Tracker(codebook)
+    first = tracker.update(render_view(mesh, T_cam_obj=T, seed=1).cloud)
+    for bad in (np.zeros((0, 3)), np.full((500, 3), np.nan), np.ones((10, 2))):
+        with pytest.raises(edgepose.InvalidCloudError):
+            tracker.update(bad)
+        assert tracker.last is first
+    after = tracker.update(render_view(mesh, T_cam_obj=T, seed=2).cloud)
+    assert after.mode == "tracked" and add_mm(codebook, after, T) < 1.0
+    tracker.reset()
+    assert tracker.last is None
+    assert tracker.update(render_view(mesh, T_cam_obj=T, seed=3).cloud).mode == "initialised"
+
+
+def test_depth_frames_and_two_trackers_in_two_threads_give_the_serial_results(drill):
+    mesh, codebook = drill
+    start = render_view(mesh, seed=11).T_cam_obj
+    views = []
+    T = start
+    for frame in range(12):
+        T = turned(T, 3.0, shift=(0.0, 0.003, 0.0))
+        views.append(render_view(mesh, T_cam_obj=T, seed=200 + frame))
+
+    def follow() -> list[np.ndarray]:
+        tracker = edgepose.Tracker(codebook)
+        return [tracker.update_depth(v.depth, v.camera.K, v.mask, depth_scale=1.0).matrix for v in views]
+
+    serial = follow()
+    results: dict[int, list[np.ndarray]] = {}
+    threads = [threading.Thread(target=lambda i=i: results.__setitem__(i, follow())) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for i in range(2):
+        assert all(np.array_equal(a, b) for a, b in zip(serial, results[i]))
