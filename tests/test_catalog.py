@@ -260,19 +260,26 @@ def test_cli_build_locally_reports_a_broken_mesh_and_exits_1(catalogue, local_bo
 
 
 def test_cli_eval_through_ray_gives_the_local_table(ray_cluster, catalogue):
-    def accuracy_rows(out) -> list[list[str]]:
+    def tables(out) -> tuple[list[list[str]], list[list[str]]]:
+        """The accuracy table's rows (object … AUC ADD(-S); not the latencies and
+        build times) and the confidence table's rows."""
         assert out.returncode == 0, out.stderr
-        rows = [
-            [c.strip() for c in line.strip("│ ").split("│")] for line in out.stdout.splitlines() if line.count("│") > 5
-        ]
-        return [row[:7] for row in rows]  # object … AUC ADD(-S); not the latencies and build times
+        accuracy, confidence = out.stdout.split("confidence at stress")
+
+        def rows(text: str) -> list[list[str]]:
+            return [
+                [c.strip() for c in line.strip("│ ").split("│")] for line in text.splitlines() if line.count("│") > 5
+            ]
+
+        return [row[:7] for row in rows(accuracy)], rows(confidence)
 
     args = ("eval", str(catalogue / "box.stl"), str(catalogue / "bracket.obj"), "--views", "3", "--seed", "2")
-    local = accuracy_rows(run(*args))
-    on_ray = accuracy_rows(run(*args, "--ray-address", ray_cluster.get_runtime_context().gcs_address))
+    local, local_confidence = tables(run(*args))
+    on_ray, ray_confidence = tables(run(*args, "--ray-address", ray_cluster.get_runtime_context().gcs_address))
     assert [row[0] for row in local] == ["box", "bracket", "all"]
-    assert on_ray == local
+    assert on_ray == local and ray_confidence == local_confidence
     assert all(row[3].endswith("%") for row in local)
+    assert [row[0] for row in local_confidence] == ["edgepose"]
 
 
 def test_local_executor_runs_jobs_in_order(catalogue, tmp_path):

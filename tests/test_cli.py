@@ -343,3 +343,14 @@ def test_track_follows_depth_frames_and_reports_a_bad_frame(drill, tmp_path):
             e = pose_errors(codebook.model.mesh_points, T_est, T_true, codebook.model.diameter, False)
             assert e.correct_add_or_s and float(row["confidence"]) >= 0.5
     fails_cleanly(run("track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames")), "need --K")
+
+
+def test_eval_at_a_stress_level_reports_confidence_and_draws_a_reliability_diagram(tmp_path):
+    out = run(
+        "eval", str(SHIPPED / "power_drill.ply"), "--views", "3", "--stress", "visible70",
+        "--reliability", str(tmp_path / "rel.png"),
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "stress visible70" in out.stdout and "confidence at stress visible70" in out.stdout
+    assert "AUROC" in out.stdout and (tmp_path / "rel.png").stat().st_size > 10_000
+    fails_cleanly(run("eval", str(SHIPPED / "power_drill.ply"), "--stress", "visible99"), "--stress must be one of")
