@@ -78,7 +78,7 @@ impl PyModelIndex {
             let p = cloud_triples(&points, "points")?;
             let poses = poses_from(&rotations, &translations)?;
             let flat = py.detach(|| search::point_distances(&self.inner, p, &poses, along_normal));
-            Ok(PyArray1::from_vec(py, flat).reshape([poses.len(), p.len()])?)
+            PyArray1::from_vec(py, flat).reshape([poses.len(), p.len()])
         })
     }
 
