@@ -307,34 +307,48 @@ def recorder(spawn: bool = False, save: str | os.PathLike | None = None) -> Reco
 def save_reliability_png(path: str | os.PathLike, groups: dict[str, tuple[np.ndarray, np.ndarray]]) -> Path:
     """A reliability diagram: per group (label → (confidences, correct)), the
     share of correct poses against the mean confidence in 10 bins; a
-    calibrated confidence lies on the diagonal."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    calibrated confidence lies on the diagonal. Needs only numpy and pillow."""
+    from PIL import Image, ImageDraw, ImageFont
 
     from edgepose.eval.metrics import auroc, calibration
 
-    fig, ax = plt.subplots(figsize=(5.2, 5.0))
-    ax.plot([0, 1], [0, 1], color="grey", lw=1, ls="--", label="calibrated")
-    for label, (p, y) in groups.items():
+    size, left, top, right, bottom = 560, 70, 40, 20, 60
+    width, height = size - left - right, size - top - bottom
+    picture = Image.new("RGB", (size, size), (255, 255, 255))
+    draw = ImageDraw.Draw(picture)
+    font, small = _font(ImageFont, 13), _font(ImageFont, 11)
+
+    def xy(confidence: float, share: float) -> tuple[float, float]:
+        return left + confidence * width, top + (1.0 - share) * height
+
+    for tick in np.linspace(0.0, 1.0, 6):
+        draw.line([xy(tick, 0), xy(tick, 1)], fill=(230, 230, 230))
+        draw.line([xy(0, tick), xy(1, tick)], fill=(230, 230, 230))
+        draw.text((xy(tick, 0)[0] - 8, top + height + 6), f"{tick:.1f}", fill=(60, 60, 60), font=small)
+        draw.text((left - 30, xy(0, tick)[1] - 7), f"{tick:.1f}", fill=(60, 60, 60), font=small)
+    draw.rectangle([xy(0, 1), xy(1, 0)], outline=(60, 60, 60))
+    for a in np.linspace(0.0, 0.96, 25):  # the calibrated diagonal, dashed
+        draw.line([xy(a, a), xy(a + 0.02, a + 0.02)], fill=(140, 140, 140), width=1)
+    colours = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189)]
+    for g, (label, (p, y)) in enumerate(groups.items()):
+        colour = colours[g % len(colours)]
         c = calibration(p, y)
-        filled = c.count > 0
-        ax.plot(
-            c.mean_confidence[filled],
-            c.accuracy[filled],
-            marker="o",
-            label=f"{label}: {len(p)} poses, AUROC {auroc(p, y):.3f}, ECE {c.ece:.3f}",
-        )
-    ax.set_xlabel("confidence (mean per bin)")
-    ax.set_ylabel("share correct, ADD(-S) < 0.1 × diameter")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1)
-    ax.set_title("Reliability of Pose.confidence")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="upper left", fontsize=7)
-    fig.tight_layout()
+        points = [xy(m, a) for m, a, n in zip(c.mean_confidence, c.accuracy, c.count) if n > 0]
+        if len(points) > 1:
+            draw.line(points, fill=colour, width=2)
+        for px, py in points:
+            draw.ellipse([px - 4, py - 4, px + 4, py + 4], fill=colour)
+        legend_y = top + 8 + 18 * g
+        draw.rectangle([left + 8, legend_y + 3, left + 18, legend_y + 13], fill=colour)
+        area = auroc(p, y)
+        ranking = f"AUROC {area:.3f}" if np.isfinite(area) else "AUROC – (all right or all wrong)"
+        text = f"{label}: {len(p)} poses, {ranking}, ECE {c.ece:.3f}"
+        draw.text((left + 24, legend_y), text, fill=(30, 30, 30), font=small)
+    draw.text((left, 12), "Reliability of Pose.confidence (diagonal: calibrated)", fill=(0, 0, 0), font=font)
+    draw.text((left + width / 2 - 90, size - 28), "confidence (mean per bin)", fill=(0, 0, 0), font=font)
+    axis_label = Image.new("RGB", (height, 18), (255, 255, 255))
+    ImageDraw.Draw(axis_label).text((40, 2), "share correct, ADD(-S) < 0.1 d", fill=(0, 0, 0), font=font)
+    picture.paste(axis_label.rotate(90, expand=True), (4, top))
     path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    picture.save(path)
     return path
