@@ -68,6 +68,11 @@ app = typer.Typer(
 ScaleOption = Annotated[float | None, typer.Option(help="Mesh file units → metres (default: detect mm).")]
 RerunOption = Annotated[bool, typer.Option("--rerun", help="Also log to a rerun viewer (viz extra).")]
 RrdOption = Annotated[Path | None, typer.Option(help="Also save a rerun recording (.rrd, viz extra).")]
+CodebookOption = Annotated[Path, typer.Option("-c", "--codebook", help="The object's codebook (edgepose build).")]
+IntrinsicsOption = Annotated[
+    str | None, typer.Option("--K", help="Depth camera intrinsics: a JSON file or 9 numbers (row-major 3×3).")
+]
+DepthScaleOption = Annotated[float, typer.Option(help="Depth units per metre (1000 for millimetre PNGs).")]
 RayOption = Annotated[
     bool,
     typer.Option(

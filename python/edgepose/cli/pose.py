@@ -11,7 +11,10 @@ import typer
 from edgepose.cli.app import (
     DEMO_OBJECT,
     SHIPPED_DIR,
+    CodebookOption,
+    DepthScaleOption,
     Failure,
+    IntrinsicsOption,
     RerunOption,
     RrdOption,
     ScaleOption,
@@ -96,17 +99,13 @@ def estimate(
             "or a 16-bit depth .png with --K and --mask."
         ),
     ],
-    codebook: Annotated[Path, typer.Option("-c", "--codebook", help="The object's codebook (edgepose build).")],
-    K: Annotated[
-        str | None, typer.Option("--K", help="Depth camera intrinsics: a JSON file or 9 numbers (row-major 3×3).")
-    ] = None,
+    codebook: CodebookOption,
+    K: IntrinsicsOption = None,
     mask: Annotated[
         Path | None,
         typer.Option(help="Segmentation mask PNG of the object (non-zero = object), same size as the depth image."),
     ] = None,
-    depth_scale: Annotated[
-        float, typer.Option(help="Depth units per metre (1000 for millimetre PNGs).")
-    ] = DEPTH_SCALE_MM,
+    depth_scale: DepthScaleOption = DEPTH_SCALE_MM,
     refine: Annotated[bool, typer.Option(help="Refine with point-to-plane ICP.")] = True,
     k: Annotated[int, typer.Option(help="Candidate viewpoints verified.")] = DEFAULT_SETTINGS.k,
     truth: Annotated[

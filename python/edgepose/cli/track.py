@@ -11,7 +11,16 @@ from typing import Annotated
 
 import typer
 
-from edgepose.cli.app import Failure, RerunOption, RrdOption, handle_errors, stdout_console
+from edgepose.cli.app import (
+    CodebookOption,
+    DepthScaleOption,
+    Failure,
+    IntrinsicsOption,
+    RerunOption,
+    RrdOption,
+    handle_errors,
+    stdout_console,
+)
 from edgepose.cloud import DEPTH_SCALE_MM
 
 FRAME_SUFFIXES = (".png", ".npy", ".ply", ".pcd")
@@ -25,19 +34,15 @@ def track(
             "or folders of them (sorted by name)."
         ),
     ],
-    codebook: Annotated[Path, typer.Option("-c", "--codebook", help="The object's codebook (edgepose build).")],
-    K: Annotated[
-        str | None, typer.Option("--K", help="Depth camera intrinsics: a JSON file or 9 numbers (row-major 3×3).")
-    ] = None,
+    codebook: CodebookOption,
+    K: IntrinsicsOption = None,
     masks: Annotated[
         Path | None,
         typer.Option(
             help="The object's masks for depth frames: a folder of PNGs named as the frames, or one PNG for all."
         ),
     ] = None,
-    depth_scale: Annotated[
-        float, typer.Option(help="Depth units per metre (1000 for millimetre PNGs).")
-    ] = DEPTH_SCALE_MM,
+    depth_scale: DepthScaleOption = DEPTH_SCALE_MM,
     out: Annotated[Path, typer.Option("-o", "--out", help="Poses CSV to write.")] = Path("poses.csv"),
     rerun: RerunOption = False,
     rrd: RrdOption = None,
