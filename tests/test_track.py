@@ -92,3 +92,15 @@ def test_depth_frames_and_two_trackers_in_two_threads_give_the_serial_results(dr
         t.join()
     for i in range(2):
         assert all(np.array_equal(a, b) for a, b in zip(serial, results[i]))
+
+
+def test_the_predicted_turn_keeps_the_motions_direction():
+    from edgepose.track import _scaled_turn
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        axis, angle = rng.normal(size=3), rng.uniform(0.01, 1.5)
+        R = trimesh.transformations.rotation_matrix(angle, axis)[:3, :3]
+        expected = trimesh.transformations.rotation_matrix(0.7 * angle, axis)[:3, :3]
+        assert np.allclose(_scaled_turn(R, 0.7), expected, atol=1e-12)
+    assert np.array_equal(_scaled_turn(np.eye(3), 0.7), np.eye(3))

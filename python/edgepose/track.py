@@ -31,7 +31,7 @@ from edgepose.encoder import Encoder, default_encoder
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages import Query, near_the_cloud, score_poses, subsample
-from edgepose.views import rotation_about, rotation_angle, rotation_axis
+from edgepose.views import rotation_about, rotation_angle
 
 
 @dataclass(frozen=True)
@@ -192,9 +192,14 @@ class Tracker:
 
 
 def _scaled_turn(R: np.ndarray, share: float) -> np.ndarray:
-    """The rotation about the same axis as ``R`` by ``share`` of its angle."""
-    angle = rotation_angle(R)
-    return rotation_about(rotation_axis(R), share * angle) if angle > 1e-9 else np.eye(3)
+    """The rotation about the same axis as ``R`` by ``share`` of its angle,
+    in the same direction. A frame's turn is well below 180°, so its axis,
+    with its sign, comes from the skew part of ``R``."""
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    length = float(np.linalg.norm(axis))  # 2 sin(angle)
+    if length < 1e-9:
+        return np.eye(3)
+    return rotation_about(axis / length, share * rotation_angle(R))
 
 
 def _spacing(points: np.ndarray) -> float:
