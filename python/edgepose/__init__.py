@@ -12,6 +12,7 @@ from edgepose.codebook import Codebook, CodebookError, build_codebook
 from edgepose.confidence import TRUST_THRESHOLD
 from edgepose.encoder import Encoder, ModelFilesError
 from edgepose.errors import EdgePoseError, InvalidCloudError, InvalidModelError, MeshLoadError
+from edgepose.frame import FramePoses, estimate_many
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
 from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
 from edgepose.pose import Pose, estimate
@@ -27,6 +28,7 @@ __all__ = [
     "EdgePoseError",
     "Encoder",
     "EstimateSettings",
+    "FramePoses",
     "ModelFilesError",
     "Pose",
     "Symmetry",
@@ -36,6 +38,7 @@ __all__ = [
     "build_codebook",
     "cloud_from_depth",
     "estimate",
+    "estimate_many",
     "InvalidCloudError",
     "InvalidModelError",
     "MeshLoadError",

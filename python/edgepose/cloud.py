@@ -162,6 +162,24 @@ def cloud_from_depth(
     spilled mask's background itself, and the filter costs grazing
     surfaces (see :data:`FLYING_PIXEL_JUMP`). ``erode_px`` shrinks the mask
     by that many pixels first (a mask known to spill far)."""
+    z, measured, K = metric_depth(depth, K, depth_scale)
+    if max_jump is not None and not (np.isfinite(max_jump) and max_jump > 0):
+        raise InvalidCloudError(f"max_jump must be a positive fraction of the depth or None, got {max_jump}")
+    if not (isinstance(erode_px, (int, np.integer)) and erode_px >= 0):
+        raise InvalidCloudError(f"erode_px must be a non-negative whole number of pixels, got {erode_px!r}")
+    valid = measured.copy()
+    if mask is not None:
+        mask = checked_mask(mask, z.shape)
+        valid &= erode(mask, erode_px) if erode_px else mask
+    if max_jump is not None:
+        valid &= ~depth_discontinuities(z, measured, valid, max_jump)
+    return back_project(z, K, valid)
+
+
+def metric_depth(depth: np.ndarray, K: object, depth_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A depth image checked and in metres: ``(z (H, W) float64 metres,
+    measured (H, W) bool: finite and positive, K (3, 3) float64)``;
+    InvalidCloudError for a non-image, a bad ``K`` or ``depth_scale``."""
     depth = np.asarray(depth)
     K = pinhole_matrix(K)
     if depth.ndim != 2:
@@ -170,20 +188,21 @@ def cloud_from_depth(
         raise InvalidCloudError(f"depth must hold numbers, got dtype {depth.dtype}")
     if not (np.isfinite(depth_scale) and depth_scale > 0):
         raise InvalidCloudError(f"depth_scale must be a positive number (depth units per metre), got {depth_scale}")
-    if max_jump is not None and not (np.isfinite(max_jump) and max_jump > 0):
-        raise InvalidCloudError(f"max_jump must be a positive fraction of the depth or None, got {max_jump}")
-    if not (isinstance(erode_px, (int, np.integer)) and erode_px >= 0):
-        raise InvalidCloudError(f"erode_px must be a non-negative whole number of pixels, got {erode_px!r}")
     z = depth.astype(np.float64) / depth_scale
-    measured = np.isfinite(z) & (z > 0)
-    valid = measured.copy()
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != depth.shape:
-            raise InvalidCloudError(f"mask shape {mask.shape} differs from depth shape {depth.shape}")
-        valid &= erode(mask, erode_px) if erode_px else mask
-    if max_jump is not None:
-        valid &= ~depth_discontinuities(z, measured, valid, max_jump)
+    return z, np.isfinite(z) & (z > 0), K
+
+
+def checked_mask(mask: object, shape: tuple[int, ...]) -> np.ndarray:
+    """``mask`` as a bool image of ``shape``; InvalidCloudError if its shape differs."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != shape:
+        raise InvalidCloudError(f"mask shape {mask.shape} differs from depth shape {shape}")
+    return mask
+
+
+def back_project(z: np.ndarray, K: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 camera-frame points (metres) of the ``valid`` pixels of
+    the depth image ``z`` (metres), in row-major order (pixel centres, OpenCV)."""
     v, u = np.nonzero(valid)
     z = z[v, u]
     x = (u - K[0, 2]) * z / K[0, 0]

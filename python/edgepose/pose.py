@@ -130,6 +130,16 @@ def estimate(
         **{name: value for name, value in (("k", k), ("icp_iterations", icp_iterations)) if value is not None}
     )
     encoder = encoder or default_encoder()
+    check_estimate_inputs(codebook, encoder, settings)
+    laps = Laps()
+    query = prepare_query(cloud, codebook, settings)
+    laps("prepare_query")
+    return pose_from_query(query, codebook, encoder, refine, settings, laps)
+
+
+def check_estimate_inputs(codebook: Codebook, encoder: Encoder, settings: EstimateSettings) -> None:
+    """``CodebookError`` if ``codebook`` was built by another encoder;
+    ``ValueError`` for ``settings.k`` or ``settings.icp_iterations`` out of range."""
     if encoder.fingerprint != codebook.fingerprint:
         raise CodebookError(
             f"the codebook was built by encoder {codebook.fingerprint[:12]}…, a different encoder than the "
@@ -139,19 +149,38 @@ def estimate(
         raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {settings.k}")
     if not 0 <= settings.icp_iterations <= MAX_ICP_ITERATIONS:
         raise ValueError(f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {settings.icp_iterations}")
-    timings: dict[str, float] = {}
-    clock = t0 = time.perf_counter()
 
-    def lap(stage: str) -> None:
-        nonlocal clock
+
+class Laps:
+    """Seconds per stage of one estimate: call it with a stage's name when
+    the stage ends; ``timings`` adds up repeated stages."""
+
+    def __init__(self) -> None:
+        self.start = self.clock = time.perf_counter()
+        self.timings: dict[str, float] = {}
+
+    def __call__(self, stage: str) -> None:
         now = time.perf_counter()
-        timings[stage] = timings.get(stage, 0.0) + now - clock
-        clock = now
+        self.timings[stage] = self.timings.get(stage, 0.0) + now - self.clock
+        self.clock = now
+
+
+def pose_from_query(
+    query: Query,
+    codebook: Codebook,
+    encoder: Encoder,
+    refine: bool,
+    settings: EstimateSettings,
+    laps: Laps,
+    encoded: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Pose:
+    """Stages 2–5 and the confidence for a prepared ``query`` (``encoded``:
+    its map's code and spectrum, when already computed), as :func:`estimate`."""
 
     def posed(views: np.ndarray, angles: np.ndarray) -> Candidates:
         """Stages 3 and 4 for codebook ``views`` and their in-plane ``angles``."""
         rotations, translations = candidate_poses(query, codebook, views, angles, settings)
-        lap("candidate_poses")
+        laps("candidate_poses")
         scores = score_poses(
             query,
             codebook,
@@ -162,22 +191,20 @@ def estimate(
             settings.candidate_free_space_weight,
             settings,
         )
-        lap("score_poses")
+        laps("score_poses")
         return Candidates(rotations, translations, scores)
 
-    query = prepare_query(cloud, codebook, settings)
-    lap("prepare_query")
     # One retrieval serves both searches: the second one's extra views are
     # the next ones down the same ranking.
     retry_k = min(settings.retry_k, len(codebook)) if refine else 0
-    views, similarity, angles = retrieve(query, codebook, encoder, max(settings.k, retry_k))
-    lap("retrieve")
+    views, similarity, angles = retrieve(query, codebook, encoder, max(settings.k, retry_k), encoded)
+    laps("retrieve")
     k = settings.k
     found = posed(views[:k], angles[:k])
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
     loose = loose_scores(query, codebook, result, settings)
-    lap("refine_hypotheses")
+    laps("refine_hypotheses")
     searches = 1
     if retry_k > k and doubtful(query, codebook, result, settings, loose):
         found = found.extended(posed(views[k:retry_k], angles[k:retry_k]))
@@ -187,7 +214,7 @@ def estimate(
         searches = 2
         if explains_more(wider, result):
             result, loose = wider, loose_scores(query, codebook, wider, settings)
-        lap("refine_hypotheses")
+        laps("refine_hypotheses")
     tight = (
         result.scores
         if result.refined
@@ -206,8 +233,9 @@ def estimate(
         observed_extent=math.hypot(*box_sides(query.points)) / codebook.model.diameter,
     )
     confidence = encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
-    lap("confidence")
-    timings["total"] = time.perf_counter() - t0
+    laps("confidence")
+    timings = laps.timings
+    timings["total"] = time.perf_counter() - laps.start
     model = codebook.model
     # Model frame = object (mesh) frame shifted by the model centre.
     t_obj = result.t - result.R @ model.centre

@@ -90,14 +90,24 @@ def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings 
     return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
 
 
-def retrieve(query: Query, codebook: Codebook, encoder: Encoder, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def retrieve(
+    query: Query,
+    codebook: Codebook,
+    encoder: Encoder,
+    k: int,
+    encoded: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stage 2: the map's code and its ``k`` most similar codebook views, with
     the in-plane angle to each: ``(candidates (k,), similarities (k,), angles
-    (k,) radians)``."""
-    code, spectrum = encoder.encode(query.map[None])
-    candidates, similarity = _core.top_k(codebook.codes, code[0], k)
+    (k,) radians)``. ``encoded``: the map's ``(code, spectrum)`` when already
+    encoded (:func:`edgepose.estimate_many` encodes a frame's maps at once)."""
+    if encoded is None:
+        codes, spectra = encoder.encode(query.map[None])
+        encoded = codes[0], spectra[0]
+    code, spectrum = encoded
+    candidates, similarity = _core.top_k(codebook.codes, code, k)
     candidates = candidates.astype(np.intp)
-    angles = encoder.in_plane_angles(spectrum[0], codebook.spectra[candidates]).astype(np.float64)
+    angles = encoder.in_plane_angles(spectrum, codebook.spectra[candidates]).astype(np.float64)
     return candidates, similarity, angles
 
 

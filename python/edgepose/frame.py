@@ -1,0 +1,119 @@
+"""``estimate_many(depth, K, objects)``: the poses of several objects seen in
+one depth frame, each given by its mask and its codebook.
+
+It does what :func:`edgepose.estimate` does per object, but shares the
+frame's work: the depth image is checked and converted once, the objects'
+maps are encoded in one ONNX call, and the objects are searched and refined
+in parallel threads (the Rust core and onnxruntime release the GIL). The
+poses equal :func:`edgepose.estimate`'s on each object's masked cloud up to
+the floating-point order of a batched encoding.
+
+Units are metres; camera frames follow OpenCV; poses are ``T_cam_obj``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from edgepose.cloud import DEPTH_SCALE_MM, back_project, checked_mask, metric_depth
+from edgepose.codebook import Codebook
+from edgepose.encoder import Encoder, default_encoder
+from edgepose.errors import EdgePoseError
+from edgepose.pose import Laps, Pose, check_estimate_inputs, pose_from_query
+from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
+from edgepose.stages import Query, prepare_query
+
+
+@dataclass(frozen=True, eq=False)
+class FramePoses:
+    """The poses of one frame's objects, in the order they were given."""
+
+    poses: tuple[Pose | None, ...]
+    """Each object's pose; None where its input was unusable (see ``errors``)."""
+    errors: tuple[EdgePoseError | None, ...]
+    """Why an object has no pose (e.g. ``InvalidCloudError``: its mask holds
+    too few measured pixels); None for the objects that have one."""
+    seconds: float
+    """Wall-clock time from the depth image to the last pose, seconds: the
+    per-image time the BOP benchmark records."""
+    timings: dict = field(default_factory=dict)
+    """Seconds per shared step: ``queries`` (clouds and stage 1, all
+    objects), ``encode`` (the one batched ONNX call), ``search`` (stages 2–5
+    and the confidence, all objects), ``total``."""
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+def estimate_many(
+    depth: np.ndarray,
+    K: object,
+    objects: Sequence[tuple[np.ndarray, Codebook]],
+    *,
+    depth_scale: float = DEPTH_SCALE_MM,
+    refine: bool = True,
+    encoder: Encoder | None = None,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+    workers: int | None = None,
+) -> FramePoses:
+    """The pose ``T_cam_obj`` of each ``(mask, codebook)`` of ``objects`` in
+    one frame: ``depth`` (H, W) with ``depth / depth_scale`` in metres (1000
+    for uint16 millimetres, 1 for float metres; 0: no measurement), ``K`` the
+    3×3 pinhole matrix, each ``mask`` (H, W) bool the object's pixels (a
+    detector's mask that spills is fine, as for :func:`edgepose.estimate`).
+
+    ``workers`` threads share the objects (default: one per core, at most one
+    per object). A bad frame (depth, ``K``, a mask's shape, a codebook of
+    another encoder) raises; an object whose mask gives no usable cloud gets
+    ``None`` and its error in :attr:`FramePoses.errors`, and the others
+    their poses."""
+    t0 = time.perf_counter()
+    encoder = encoder or default_encoder()
+    z, measured, K = metric_depth(depth, K, depth_scale)
+    masks = [checked_mask(mask, z.shape) for mask, _ in objects]
+    codebooks = [codebook for _, codebook in objects]
+    for codebook in codebooks:
+        check_estimate_inputs(codebook, encoder, settings)
+    workers = max(1, min(workers or os.cpu_count() or 1, len(objects)))
+    timings: dict[str, float] = {}
+
+    def prepared(i: int) -> tuple[Query | None, Laps, EdgePoseError | None]:
+        laps = Laps()
+        try:
+            query = prepare_query(back_project(z, K, measured & masks[i]), codebooks[i], settings)
+        except EdgePoseError as e:
+            return None, laps, e
+        laps("prepare_query")
+        return query, laps, None
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        started = time.perf_counter()
+        queries, laps, errors = zip(*pool.map(prepared, range(len(objects)))) if objects else ((), (), ())
+        timings["queries"] = time.perf_counter() - started
+        started = time.perf_counter()
+        usable = [i for i, q in enumerate(queries) if q is not None]
+        codes, spectra = encoder.encode(np.stack([queries[i].map for i in usable])) if usable else ((), ())
+        encoded = dict(zip(usable, zip(codes, spectra)))
+        timings["encode"] = time.perf_counter() - started
+        started = time.perf_counter()
+
+        def searched(i: int) -> Pose | None:
+            query = queries[i]
+            if query is None:
+                return None
+            now = time.perf_counter()  # its search starts now: the wait is not its time
+            laps[i].start += now - laps[i].clock
+            laps[i].clock = now
+            return pose_from_query(query, codebooks[i], encoder, refine, settings, laps[i], encoded[i])
+
+        poses = tuple(pool.map(searched, range(len(objects))))
+        timings["search"] = time.perf_counter() - started
+    seconds = time.perf_counter() - t0
+    timings["total"] = seconds
+    return FramePoses(poses, tuple(errors), seconds, timings)
