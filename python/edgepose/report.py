@@ -15,7 +15,7 @@ import statistics
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -77,10 +77,17 @@ def version_text() -> str:
     )
 
 
+class Step(Protocol):
+    """What a progress bar shows of a finished step (an :class:`ObjectResult`, an image…)."""
+
+    name: str
+    status: str
+
+
 @contextmanager
-def progress(console: Console, verb: str, total: int) -> Iterator[Callable[[ObjectResult], None]]:
-    """A transient progress bar of ``total`` objects; yields the callback that
-    advances it as each object's result arrives."""
+def progress(console: Console, verb: str, total: int) -> Iterator[Callable[[Step], None]]:
+    """A transient progress bar of ``total`` steps (objects, images); yields
+    the callback that advances it as each step's result arrives."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     bar = Progress(
@@ -94,7 +101,7 @@ def progress(console: Console, verb: str, total: int) -> Iterator[Callable[[Obje
     with bar:
         task = bar.add_task(verb, total=total)
 
-        def on_result(result: ObjectResult) -> None:
+        def on_result(result: Step) -> None:
             bar.update(task, description=f"{verb}: {result.name} {result.status}")
             bar.advance(task)
 

@@ -49,6 +49,10 @@ EXAMPLES = """
   [cyan]edgepose eval ../shared/data/ycb --views 20[/cyan]
   [cyan]edgepose eval ../shared/data/ycb --stress visible70 --reliability rel.png[/cyan]
 
+  [dim]# a BOP dataset (LM-O, T-LESS, YCB-V…): codebooks, poses, the BOP results CSV and AR[/dim]
+  [cyan]edgepose bop lmo/ -o results/[/cyan]
+  [cyan]edgepose bop lmo/ --scenes 2 --masks cnos-fastsam_lmo-test.json[/cyan]
+
   [dim]# versions; proves the compiled core and the networks load[/dim]
   [cyan]edgepose --version[/cyan]
 """

@@ -1,18 +1,36 @@
-"""BOP challenge results files: ``scene_id,im_id,obj_id,score,R,t,time``.
+"""BOP benchmark files: datasets in the BOP-scenewise layout, and results
+files ``scene_id,im_id,obj_id,score,R,t,time``.
 
-In the file R is 9 space-separated values (row-major), t is 3 space-separated
-values in millimetres and time is seconds (the BOP toolkit's format). In
-memory, :class:`BopRow` keeps t in metres like the rest of edgepose.
+A dataset folder (``lmo/``, ``tless/``, ``ycbv/``…) holds ``models/`` (or
+``models_eval/``) with ``obj_OBJID.ply`` meshes and ``models_info.json``
+(diameters, symmetries), and a split folder (``test/``, or e.g.
+``test_primesense/``) of scenes ``SCENE/`` with ``scene_camera.json``
+(``cam_K``, ``depth_scale``), ``scene_gt.json`` (``cam_R_m2c``,
+``cam_t_m2c``), ``scene_gt_info.json`` (``visib_fract``), ``depth/IMID.png``
+and ``mask_visib/IMID_GTID.png``; beside them the targets file
+(``test_targets_bop19.json``).
+
+BOP is in millimetres and edgepose in metres: this module converts at the
+edge, once, so everything it returns is in metres (poses ``T_cam_obj``,
+OpenCV camera frame). In a results file R is 9 space-separated values
+(row-major), t is 3 space-separated values in millimetres and time is
+seconds (the BOP toolkit's format); :class:`BopRow` keeps t in metres.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from edgepose.errors import EdgePoseError
+from edgepose.symmetry import Symmetry
 
 BOP_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
@@ -126,3 +144,269 @@ def _parse_row(line: str) -> BopRow:
         t=np.array(t_values) / 1000.0,
         time=float(time),
     )
+
+
+# ------------------------------------------------------------------ datasets
+
+#: Millimetres (BOP's unit) → metres.
+MM = 0.001
+#: Targets less visible than this are not counted (BOP: 10 % of the surface).
+MIN_VISIBLE_FRACTION = 0.1
+#: The targets files looked for beside the split folder, in order.
+TARGETS_FILES = ("{split}_targets_bop19.json", "test_targets_bop19.json", "{split}_targets_bop24.json")
+
+
+class BopDatasetError(EdgePoseError):
+    """A BOP dataset folder that cannot be read: a missing or malformed
+    file, named with what was expected."""
+
+
+@dataclass(frozen=True, eq=False)
+class BopObject:
+    """One object model of a dataset (``models_info.json``), metres."""
+
+    obj_id: int
+    diameter: float
+    """Metres."""
+    symmetry: Symmetry
+    """``symmetries_discrete`` and ``symmetries_continuous``, object frame, metres."""
+    mesh: Path
+    """``models/obj_OBJID.ply``: the mesh codebooks are built from (millimetres)."""
+    eval_mesh: Path
+    """``models_eval/obj_OBJID.ply`` when the dataset has it (the BOP metrics
+    use it), else ``mesh``."""
+
+
+@dataclass(frozen=True, eq=False)
+class BopGt:
+    """One annotated object instance of an image."""
+
+    gt_id: int
+    """Its index in the image's ``scene_gt`` list (names its mask file)."""
+    obj_id: int
+    R: np.ndarray
+    """(3, 3) float64 rotation, object → camera."""
+    t: np.ndarray
+    """(3,) float64 translation, metres."""
+    visib_fract: float
+    """Share of its silhouette that is visible, 0–1 (``scene_gt_info``)."""
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 ``T_cam_obj``."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R, self.t
+        return T
+
+
+@dataclass(frozen=True, eq=False)
+class BopImage:
+    """One test image: camera, depth and annotations."""
+
+    scene_id: int
+    im_id: int
+    K: np.ndarray
+    """(3, 3) float64 pinhole intrinsics, pixels."""
+    depth_scale: float
+    """Depth image units → metres (BOP's ``depth_scale`` is → millimetres)."""
+    gts: tuple[BopGt, ...]
+    scene_dir: Path
+
+    def depth(self) -> np.ndarray:
+        """(H, W) float64 depth, metres; 0 where nothing was measured."""
+        from edgepose.io import read_depth_png
+
+        image = read_depth_png(_image_file(self.scene_dir / "depth", f"{self.im_id:06d}"))
+        return image.astype(np.float64) * self.depth_scale
+
+    def mask(self, gt_id: int) -> np.ndarray:
+        """(H, W) bool: where annotated instance ``gt_id`` is visible (``mask_visib``)."""
+        from edgepose.io import read_mask_png
+
+        return read_mask_png(_image_file(self.scene_dir / "mask_visib", f"{self.im_id:06d}_{gt_id:06d}"))
+
+
+@dataclass(frozen=True)
+class BopTarget:
+    """Object ``obj_id`` is to be found ``inst_count`` times in an image."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    inst_count: int
+
+
+class BopDataset:
+    """A BOP-scenewise dataset folder and one of its splits. Reads lazily:
+    a scene's JSON files when one of its images is first asked for."""
+
+    def __init__(self, root: str | os.PathLike, split: str = "test") -> None:
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise BopDatasetError(f"{self.root}: no such dataset folder")
+        self.name = self.root.resolve().name
+        """The dataset's name, from its folder (``lmo``): names the results file."""
+        self.split = split
+        self.split_dir = _split_dir(self.root, split)
+        self._scenes: dict[int, tuple[dict, dict, dict]] = {}
+
+    @cached_property
+    def objects(self) -> dict[int, BopObject]:
+        """Every object of ``models_info.json``, by id."""
+        models = next((self.root / d for d in ("models", "models_eval") if (self.root / d).is_dir()), None)
+        if models is None:
+            raise BopDatasetError(f"{self.root}: no models/ or models_eval/ folder")
+        info = _read_json(models / "models_info.json")
+        eval_dir = self.root / "models_eval"
+        objects = {}
+        for key, entry in info.items():
+            obj_id = int(key)
+            mesh = models / f"obj_{obj_id:06d}.ply"
+            eval_mesh = eval_dir / mesh.name
+            try:
+                objects[obj_id] = BopObject(
+                    obj_id,
+                    float(entry["diameter"]) * MM,
+                    symmetry_from_info(entry),
+                    mesh,
+                    eval_mesh if eval_mesh.is_file() else mesh,
+                )
+            except (KeyError, TypeError, ValueError) as e:
+                raise BopDatasetError(f"{models / 'models_info.json'}: object {key}: {type(e).__name__}: {e}") from None
+        return objects
+
+    def scene_ids(self) -> list[int]:
+        """The split's scenes (folders named by a number), ascending."""
+        return sorted(int(d.name) for d in self.split_dir.iterdir() if d.is_dir() and d.name.isdigit())
+
+    def image_ids(self, scene_id: int) -> list[int]:
+        """The images of a scene with annotations, ascending."""
+        return sorted(int(k) for k in self._scene(scene_id)[1])
+
+    def image(self, scene_id: int, im_id: int) -> BopImage:
+        """Camera and annotations of one image (metres)."""
+        camera, gt, gt_info = self._scene(scene_id)
+        where = self.split_dir / f"{scene_id:06d}"
+        try:
+            cam = camera[str(im_id)]
+            K = np.asarray(cam["cam_K"], dtype=np.float64).reshape(3, 3)
+            depth_scale = float(cam.get("depth_scale", 1.0)) * MM
+            gts = tuple(
+                BopGt(
+                    gt_id,
+                    int(g["obj_id"]),
+                    np.asarray(g["cam_R_m2c"], dtype=np.float64).reshape(3, 3),
+                    np.asarray(g["cam_t_m2c"], dtype=np.float64).reshape(3) * MM,
+                    float(gt_info[str(im_id)][gt_id]["visib_fract"]) if gt_info else 1.0,
+                )
+                for gt_id, g in enumerate(gt.get(str(im_id), []))
+            )
+        except (KeyError, IndexError, TypeError, ValueError) as e:
+            raise BopDatasetError(f"{where}: image {im_id}: malformed annotation ({type(e).__name__}: {e})") from None
+        return BopImage(scene_id, im_id, K, depth_scale, gts, where)
+
+    def targets(
+        self, targets_file: str | os.PathLike | None = None, scenes: Iterable[int] | None = None
+    ) -> list[BopTarget]:
+        """What to find, per image and object: from ``targets_file``, else the
+        dataset's own (``test_targets_bop19.json``…), else every annotated
+        instance at least :data:`MIN_VISIBLE_FRACTION` visible. Only
+        ``scenes`` when given. A BOP24-style file listing images only gets
+        each image's instances at least 10 % visible."""
+        wanted = None if scenes is None else set(scenes)
+        path = Path(targets_file) if targets_file is not None else self._default_targets_file()
+        if path is None:
+            entries = [{"scene_id": s, "im_id": i} for s in self.scene_ids() for i in self.image_ids(s)]
+        else:
+            entries = _read_json(path)
+            if not isinstance(entries, list):
+                raise BopDatasetError(f"{path}: expected a list of targets")
+        targets: list[BopTarget] = []
+        for entry in entries:
+            try:
+                scene_id, im_id = int(entry["scene_id"]), int(entry["im_id"])
+                if wanted is not None and scene_id not in wanted:
+                    continue
+                if "obj_id" in entry:
+                    targets.append(BopTarget(scene_id, im_id, int(entry["obj_id"]), int(entry["inst_count"])))
+                else:
+                    targets.extend(self._visible_targets(scene_id, im_id))
+            except (KeyError, TypeError, ValueError) as e:
+                raise BopDatasetError(f"{path}: malformed target {entry!r} ({type(e).__name__}: {e})") from None
+        return targets
+
+    def _visible_targets(self, scene_id: int, im_id: int) -> list[BopTarget]:
+        counts: dict[int, int] = {}
+        for g in self.image(scene_id, im_id).gts:
+            if g.visib_fract >= MIN_VISIBLE_FRACTION:
+                counts[g.obj_id] = counts.get(g.obj_id, 0) + 1
+        return [BopTarget(scene_id, im_id, obj_id, n) for obj_id, n in sorted(counts.items())]
+
+    def _default_targets_file(self) -> Path | None:
+        for pattern in TARGETS_FILES:
+            path = self.root / pattern.format(split=self.split)
+            if path.is_file():
+                return path
+        return None
+
+    def _scene(self, scene_id: int) -> tuple[dict, dict, dict]:
+        if scene_id not in self._scenes:
+            where = self.split_dir / f"{scene_id:06d}"
+            if not where.is_dir():
+                raise BopDatasetError(f"{where}: no such scene folder")
+            info = where / "scene_gt_info.json"
+            self._scenes[scene_id] = (
+                _read_json(where / "scene_camera.json"),
+                _read_json(where / "scene_gt.json"),
+                _read_json(info) if info.is_file() else {},
+            )
+        return self._scenes[scene_id]
+
+
+def symmetry_from_info(entry: dict) -> Symmetry:
+    """An object's symmetries from its ``models_info.json`` entry (BOP:
+    flattened 4×4 turns with t in mm; continuous ones as a unit ``axis`` and a
+    point ``offset`` on it, mm), in metres."""
+    discrete = np.asarray(entry.get("symmetries_discrete", []), dtype=np.float64).reshape(-1, 4, 4).copy()
+    discrete[:, :3, 3] *= MM
+    continuous = np.asarray(
+        [
+            [*s["axis"], *(np.asarray(s["offset"], dtype=np.float64) * MM)]
+            for s in entry.get("symmetries_continuous", [])
+        ],
+        dtype=np.float64,
+    ).reshape(-1, 6)
+    norms = np.linalg.norm(continuous[:, :3], axis=1, keepdims=True)
+    continuous[:, :3] /= np.where(norms > 0, norms, 1.0)
+    return Symmetry.from_json({"discrete": discrete.reshape(-1, 16).tolist(), "continuous": continuous.tolist()})
+
+
+def _split_dir(root: Path, split: str) -> Path:
+    """``root/split``, or the one ``root/split_TYPE`` (``test_primesense``)."""
+    if (root / split).is_dir():
+        return root / split
+    typed = sorted(d for d in root.glob(f"{split}_*") if d.is_dir())
+    if len(typed) == 1:
+        return typed[0]
+    found = ", ".join(d.name for d in sorted(root.iterdir()) if d.is_dir()) or "nothing"
+    raise BopDatasetError(f"{root}: no {split}/ split folder (found: {found})")
+
+
+def _image_file(folder: Path, stem: str) -> Path:
+    """``folder/stem.png``, or the one ``folder/stem.*`` (``.tif`` depth)."""
+    path = folder / f"{stem}.png"
+    if path.is_file():
+        return path
+    found = sorted(folder.glob(f"{stem}.*"))
+    if not found:
+        raise BopDatasetError(f"{path}: no such image")
+    return found[0]
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise BopDatasetError(f"{path}: missing") from None
+    except (OSError, ValueError) as e:
+        raise BopDatasetError(f"{path}: not readable JSON ({e})") from None
