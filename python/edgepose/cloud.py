@@ -200,11 +200,14 @@ def checked_mask(mask: object, shape: tuple[int, ...]) -> np.ndarray:
     return mask
 
 
-def back_project(z: np.ndarray, K: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def back_project(z: np.ndarray, K: np.ndarray, valid: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """(N, 3) float64 camera-frame points (metres) of the ``valid`` pixels of
-    the depth image ``z`` (metres), in row-major order (pixel centres, OpenCV)."""
+    the depth image ``z`` (metres), in row-major order (pixel centres,
+    OpenCV). ``origin``: the (row, column) of ``z``'s first pixel when it is a
+    window of the camera's image."""
     v, u = np.nonzero(valid)
     z = z[v, u]
+    v, u = v + origin[0], u + origin[1]
     x = (u - K[0, 2]) * z / K[0, 0]
     y = (v - K[1, 2]) * z / K[1, 1]
     return np.stack([x, y, z], axis=1)

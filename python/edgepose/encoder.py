@@ -67,6 +67,9 @@ class Encoder:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
+        # Idle intra-op threads sleep instead of spinning: between calls the
+        # cores belong to the Rust stages (estimate_many's threads).
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         providers = ["CPUExecutionProvider"]
         try:
             self._encoder = ort.InferenceSession(blobs["encoder.onnx"], options, providers=providers)

@@ -69,32 +69,36 @@ def estimate_many(
     detector's mask that spills is fine, as for :func:`edgepose.estimate`).
 
     ``workers`` threads share the objects (default: one per core, at most one
-    per object). A bad frame (depth, ``K``, a mask's shape, a codebook of
-    another encoder) raises; an object whose mask gives no usable cloud gets
+    per object); the default encoder runs the batch on as many threads. A
+    bad frame (depth, ``K``, a mask's shape, a codebook of another encoder)
+    raises; an object whose mask gives no usable cloud gets
     ``None`` and its error in :attr:`FramePoses.errors`, and the others
     their poses."""
     t0 = time.perf_counter()
-    encoder = encoder or default_encoder()
+    workers = max(1, min(workers or os.cpu_count() or 1, len(objects)))
+    # The batched encoding runs alone, so it may use every worker's core.
+    encoder = encoder or default_encoder(threads=workers)
     z, measured, K = metric_depth(depth, K, depth_scale)
     masks = [checked_mask(mask, z.shape) for mask, _ in objects]
     codebooks = [codebook for _, codebook in objects]
     for codebook in codebooks:
         check_estimate_inputs(codebook, encoder, settings)
-    workers = max(1, min(workers or os.cpu_count() or 1, len(objects)))
     timings: dict[str, float] = {}
 
     def prepared(i: int) -> tuple[Query | None, Laps, EdgePoseError | None]:
         laps = Laps()
         try:
-            query = prepare_query(back_project(z, K, measured & masks[i]), codebooks[i], settings)
+            query = prepare_query(_masked_points(z, measured, K, masks[i]), codebooks[i], settings)
         except EdgePoseError as e:
             return None, laps, e
         laps("prepare_query")
         return query, laps, None
 
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+    each = pool.map if pool else map  # one worker: this thread, no pool
+    try:
         started = time.perf_counter()
-        queries, laps, errors = zip(*pool.map(prepared, range(len(objects)))) if objects else ((), (), ())
+        queries, laps, errors = zip(*each(prepared, range(len(objects)))) if objects else ((), (), ())
         timings["queries"] = time.perf_counter() - started
         started = time.perf_counter()
         usable = [i for i, q in enumerate(queries) if q is not None]
@@ -112,8 +116,21 @@ def estimate_many(
             laps[i].clock = now
             return pose_from_query(query, codebooks[i], encoder, refine, settings, laps[i], encoded[i])
 
-        poses = tuple(pool.map(searched, range(len(objects))))
+        poses = tuple(each(searched, range(len(objects))))
         timings["search"] = time.perf_counter() - started
+    finally:
+        if pool:
+            pool.shutdown()
     seconds = time.perf_counter() - t0
     timings["total"] = seconds
     return FramePoses(poses, tuple(errors), seconds, timings)
+
+
+def _masked_points(z: np.ndarray, measured: np.ndarray, K: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(N, 3) camera-frame points of the measured pixels of ``mask``, found
+    in the mask's bounding box (a frame's objects are small)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return np.zeros((0, 3))
+    window = slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+    return back_project(z[window], K, measured[window] & mask[window], (int(rows[0]), int(cols[0])))

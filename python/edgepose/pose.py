@@ -30,7 +30,6 @@ from edgepose.stages import (
     refine_hypotheses,
     retrieve,
     score_poses,
-    subsample,
 )
 from edgepose.symmetry import NO_SYMMETRY, Symmetry
 
@@ -313,7 +312,7 @@ def scores_at(
     return score_poses(
         query,
         codebook,
-        subsample(query.points, settings.hypothesis_points, settings.subsample_seed),
+        query.sample(settings.hypothesis_points, settings.subsample_seed),
         result.R[None],
         result.t[None],
         inlier_distance * codebook.model.diameter,

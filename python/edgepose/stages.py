@@ -20,7 +20,7 @@ the model's centre); units are metres. Every tuning value lives in
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -50,6 +50,14 @@ class Query:
     """(M, 3) float32 the corrected, centred, scaled and resampled map."""
     keypoints: np.ndarray
     """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
+    _samples: dict = field(default_factory=dict, repr=False)
+
+    def sample(self, count: int, seed: int) -> np.ndarray:
+        """:func:`subsample` of ``points`` (``count``, ``seed``), drawn once
+        per query: the stages ask for the same samples several times."""
+        if (count, seed) not in self._samples:
+            self._samples[count, seed] = subsample(self.points, count, seed)
+        return self._samples[count, seed]
 
 
 class PoseScores(NamedTuple):
@@ -198,7 +206,7 @@ def refine_hypotheses(
     results, so a second, wider search does not repeat the first one's."""
     cache: dict = {} if icp_cache is None else icp_cache
     d = codebook.model.diameter
-    coarse = subsample(query.points, settings.hypothesis_points, settings.subsample_seed)
+    coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
     starts = distinct_hypotheses(
         rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
     )
@@ -233,7 +241,7 @@ def refine_hypotheses(
     if settings.icp_iterations > 0:
         if ("fine", best.candidate) not in cache:
             cache["fine", best.candidate] = codebook.index.refine(
-                subsample(query.points, settings.icp_points, settings.subsample_seed + 1),
+                query.sample(settings.icp_points, settings.subsample_seed + 1),
                 hyp_R[pick : pick + 1],
                 hyp_t[pick : pick + 1],
                 settings.icp_iterations,

@@ -1,0 +1,185 @@
+"""BOP benchmark on a synthetic BOP-format dataset of the shared YCB meshes:
+per-image time of ``edgepose.estimate_many`` for 8 objects against
+``edgepose.estimate`` called per object (the same process, the same
+images), and the BOP score (AR of VSD, MSSD, MSPD; ADD(-S)) as ``edgepose
+bop`` computes it.
+
+    .venv/bin/python benches/bench_bop.py [--scenes 2] [--images 10] [--objects 8] [--out benches/BOP.md]
+
+Dataset (written once to ``benches/.cache/ycbsyn/``, not committed): the five
+shared YCB meshes as BOP objects (YCB-V ids; symmetries as edgepose detects
+them), ``--scenes`` × ``--images`` frames of ``--objects`` instances each
+(object ids cycled, so most frames hold an object twice) at 0.7–1.0 m,
+spread around the image centre in front of a tilted plane, hiding one
+another where they overlap; LINEMOD camera, 1 mm depth noise and steps, 1 %
+dropout. Targets: every instance at least 10 % visible (BOP's rule).
+
+Stress levels reported: ``masks exact`` (the annotated visible masks) and
+``masks spill 5 px`` (each mask dilated by 5 pixels onto its neighbours and
+the background, as a detector's). Times: median and 90th percentile per
+image, estimation only (images are read from disk before the clock starts).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import time
+from pathlib import Path
+
+import edgepose
+import numpy as np
+from edgepose.cloud import dilate
+from edgepose.eval.bop import YCBV_OBJ_ID, BopDataset
+from edgepose.eval.bop_run import Detection, bop_codebooks, run_bop
+from edgepose.eval.bop_scenes import write_bop_dataset
+from edgepose.eval.bop_score import score_bop
+from edgepose.model import load_model, read_mesh
+
+REPO = Path(__file__).resolve().parents[1]
+YCB = REPO.parent / "shared" / "data" / "ycb"
+CACHE = REPO / "benches" / ".cache"
+SPILL_PX = 5
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", type=int, default=2)
+    parser.add_argument("--images", type=int, default=10, help="images per scene")
+    parser.add_argument("--objects", type=int, default=8, help="object instances per image")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs of each image per method (median kept)")
+    parser.add_argument("--out", type=Path, default=REPO / "benches" / "BOP.md")
+    args = parser.parse_args()
+    load_before = os.getloadavg()
+    started = time.perf_counter()
+
+    root = CACHE / f"ycbsyn_{args.scenes}x{args.images}x{args.objects}"
+    if not (root / "test_targets_bop19.json").is_file():
+        meshes = {YCBV_OBJ_ID[p.stem]: read_mesh(p) for p in sorted(YCB.glob("*.ply"))}
+        symmetries = {i: edgepose.detect_symmetry(load_model(m, scale=1.0)) for i, m in meshes.items()}
+        write_bop_dataset(
+            root,
+            meshes,
+            scenes=args.scenes,
+            images=args.images,
+            objects_per_image=args.objects,
+            symmetries=symmetries,
+            distance=(0.7, 1.0),
+            seed=2024,
+        )
+    dataset = BopDataset(root)
+    targets = dataset.targets()
+    books = bop_codebooks(dataset, {t.obj_id for t in targets}, CACHE / "ycbsyn_codebooks")
+    names = {v: k for k, v in YCBV_OBJ_ID.items()}
+
+    # Per-image time: the same objects three ways, each image `repeats` times.
+    times: dict[str, list[float]] = {"estimate_many (2 threads)": [], "estimate_many (1 thread)": [], "estimate": []}
+    counts = []
+    for scene_id in dataset.scene_ids():
+        for im_id in dataset.image_ids(scene_id):
+            image = dataset.image(scene_id, im_id)
+            depth = image.depth()
+            wanted = {(t.obj_id) for t in targets if (t.scene_id, t.im_id) == (scene_id, im_id)}
+            objects = [
+                (image.mask(g.gt_id), books[g.obj_id])
+                for g in image.gts
+                if g.obj_id in wanted and g.visib_fract >= 0.1
+            ]
+            counts.append(len(objects))
+            for name, run in (
+                ("estimate_many (2 threads)", lambda: edgepose.estimate_many(depth, image.K, objects, depth_scale=1.0)),
+                (
+                    "estimate_many (1 thread)",
+                    lambda: edgepose.estimate_many(depth, image.K, objects, depth_scale=1.0, workers=1),
+                ),
+                ("estimate", lambda: _one_by_one(depth, image.K, objects)),
+            ):
+                laps = []
+                for _ in range(args.repeats):
+                    t0 = time.perf_counter()
+                    run()
+                    laps.append(time.perf_counter() - t0)
+                times[name].append(float(np.median(laps)))
+
+    # The BOP score at two mask qualities.
+    scores = {}
+    for level, detections in (("masks exact", None), (f"masks spill {SPILL_PX} px", _spilled(dataset, targets))):
+        rows = run_bop(dataset, targets, books, detections=detections)
+        scores[level] = score_bop(dataset, rows, targets)
+
+    baseline = np.median(times["estimate"])
+    timing_rows = [
+        f"| {name} | {1000 * np.median(ts):.1f} | {1000 * np.percentile(ts, 90):.1f} | "
+        f"{baseline / np.median(ts):.2f}× |"
+        for name, ts in times.items()
+    ]
+    score_rows = []
+    for level, s in scores.items():
+        for obj_id, o in sorted(s.objects.items()):
+            score_rows.append(_score_row(level, f"{names.get(obj_id, obj_id)} ({obj_id})", o))
+        score_rows.append(_score_row(level, "**all**", s.overall))
+    visib = [g.visib_fract for t in targets for g in dataset.image(t.scene_id, t.im_id).gts if g.obj_id == t.obj_id]
+    text = f"""# BOP benchmark (synthetic YCB scenes)
+
+Generated by `benches/bench_bop.py`; do not edit by hand.
+
+```bash
+.venv/bin/python benches/bench_bop.py --scenes {args.scenes} --images {args.images} --objects {args.objects} \\
+    --repeats {args.repeats}
+```
+
+- date: {datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")}
+- machine: {platform.machine()}, {os.cpu_count()} CPUs; edgepose {edgepose.__version__}
+- load average (1 min) before: {load_before[0]:.2f}, after: {os.getloadavg()[0]:.2f}
+- wall time: {(time.perf_counter() - started) / 60:.1f} min
+- {len(counts)} images, {np.median(counts):.0f} objects estimated per image (median; {min(counts)}–{max(counts)}),
+  {sum(t.inst_count for t in targets)} targets; visible fraction of the targets: median {np.median(visib):.2f},
+  10th percentile {np.percentile(visib, 10):.2f}
+
+{__doc__.split(chr(10) + chr(10), 1)[1]}
+## Per-image time (masks exact)
+
+| method | median ms | p90 ms | speed-up vs estimate |
+| --- | ---: | ---: | ---: |
+{chr(10).join(timing_rows)}
+
+## BOP score (%)
+
+| stress | object | targets | AR | AR_VSD | AR_MSSD | AR_MSPD | ADD(-S) |
+| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |
+{chr(10).join(score_rows)}
+"""
+    args.out.write_text(text)
+    print(text)
+    print(f"wrote {args.out}")
+
+
+def _one_by_one(depth: np.ndarray, K: np.ndarray, objects: list) -> None:
+    for mask, book in objects:
+        edgepose.estimate(edgepose.cloud_from_depth(depth, K, mask, 1.0), book)
+
+
+def _spilled(dataset: BopDataset, targets: list) -> dict[tuple[int, int], list[Detection]]:
+    """Each target's visible masks dilated by SPILL_PX pixels, as detections (score 1)."""
+    out: dict[tuple[int, int], list[Detection]] = {}
+    for t in targets:
+        image = dataset.image(t.scene_id, t.im_id)
+        for g in image.gts:
+            if g.obj_id == t.obj_id:
+                mask = dilate(image.mask(g.gt_id), SPILL_PX)
+                det = Detection(t.scene_id, t.im_id, t.obj_id, g.visib_fract, mask, -1.0)
+                out.setdefault((t.scene_id, t.im_id), []).append(det)
+    return out
+
+
+def _score_row(level: str, name: str, s) -> str:
+    return (
+        f"| {level} | {name} | {s.targets} | {100 * s.ar:.1f} | {100 * s.ar_vsd:.1f} | {100 * s.ar_mssd:.1f} "
+        f"| {100 * s.ar_mspd:.1f} | {100 * s.add_s:.1f} |"
+    )
+
+
+if __name__ == "__main__":
+    main()
