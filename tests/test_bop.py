@@ -20,6 +20,7 @@ from edgepose.eval.bop import BopDataset, BopDatasetError, BopRow, read_bop_csv
 from edgepose.eval.bop_run import bop_codebooks, decode_rle, read_detections, run_bop
 from edgepose.eval.bop_scenes import write_bop_dataset
 from edgepose.eval.bop_score import score_bop
+from edgepose.io import read_mask_png
 from edgepose.symmetry import Symmetry
 from test_cli import fails_cleanly, run
 
@@ -115,13 +116,15 @@ def test_a_typed_split_folder_is_found_and_missing_files_are_named(dataset_dir, 
     copy = tmp_path / "tless"
     shutil.copytree(dataset_dir, copy)
     (copy / "test").rename(copy / "test_primesense")
+    (copy / "models").rename(copy / "models_cad")
     assert BopDataset(copy).split_dir.name == "test_primesense"
+    assert BopDataset(copy).objects[2].mesh.parent.name == "models_cad"
     with pytest.raises(BopDatasetError, match="no val/ split folder"):
         BopDataset(copy, "val")
-    (copy / "test_primesense" / "000001" / "scene_gt.json").unlink()
-    with pytest.raises(BopDatasetError, match="scene_gt.json: missing"):
+    (copy / "test_primesense" / "000001" / "scene_camera.json").unlink()
+    with pytest.raises(BopDatasetError, match="scene_camera.json: missing"):
         BopDataset(copy).image(1, 0)
-    (copy / "models" / "models_info.json").write_text("{not json")
+    (copy / "models_cad" / "models_info.json").write_text("{not json")
     with pytest.raises(BopDatasetError, match="models_info.json: not readable JSON"):
         _ = BopDataset(copy).objects
     with pytest.raises(BopDatasetError, match="no such dataset folder"):
@@ -327,3 +330,37 @@ def test_edgepose_bop_command_errors(dataset_dir, tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text("[1]")
     fails_cleanly(run("bop", str(dataset_dir), "--masks", str(bad), "-o", str(tmp_path)), "detection 0 malformed")
+
+
+def test_a_split_without_published_ground_truth_gives_the_csv_alone(dataset_dir, tmp_path):
+    # As ITODD's test split: cameras, depth and targets, but no poses or masks.
+    copy = tmp_path / "itodd_like"
+    shutil.copytree(dataset_dir, copy)
+    scene = copy / "test" / "000002"
+    masks = {p.name: read_mask_png(p) for p in sorted((scene / "mask_visib").glob("*.png"))}
+    gt = json.loads((scene / "scene_gt.json").read_text())
+    for name in ("scene_gt.json", "scene_gt_info.json"):
+        (scene / name).unlink()
+    shutil.rmtree(scene / "mask_visib")
+    entries = []
+    for im_id, instances in gt.items():
+        for gt_id, a in enumerate(instances):
+            mask = masks[f"{int(im_id):06d}_{gt_id:06d}.png"]
+            entries.append(
+                {
+                    "scene_id": 2,
+                    "image_id": int(im_id),
+                    "category_id": a["obj_id"],
+                    "score": 0.9,
+                    "segmentation": {"counts": rle_counts(mask), "size": list(mask.shape)},
+                }
+            )
+    detections = tmp_path / "detections.json"
+    detections.write_text(json.dumps(entries))
+    assert not BopDataset(copy).has_ground_truth(2) and BopDataset(copy).image_ids(2) == [0, 1, 2]
+    fails_cleanly(run("bop", str(copy), "--scenes", "2", "-o", str(tmp_path / "a")), "not published")
+    result = run("bop", str(copy), "--scenes", "2", "--masks", str(detections), "-o", str(tmp_path / "b"))
+    assert result.returncode == 0, result.stderr
+    assert "no ground truth published" in result.stdout
+    assert len(read_bop_csv(tmp_path / "b" / "edgepose_itodd_like-test.csv")) == 9
+    assert not (tmp_path / "b" / "edgepose_itodd_like-test_scores.json").exists()

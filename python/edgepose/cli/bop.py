@@ -56,7 +56,8 @@ def bop(
     Builds a codebook per object model (skipped when up to date, so reruns start at once), estimates every target
     with the annotated visible masks (or a detector's, --masks FILE), one estimate_many call per image, and writes
     OUT/edgepose_DATASET-SPLIT.csv in the BOP results format (R row-major, t in mm, time per image in seconds), then
-    the scores per object and overall: printed, and written as OUT/edgepose_DATASET-SPLIT_scores.json and .md.
+    the scores per object and overall: printed, and written as OUT/edgepose_DATASET-SPLIT_scores.json and .md
+    (when the split's ground truth is published; otherwise the CSV alone, for the BOP server).
     """
     from edgepose.eval.bop import BopDataset, write_bop_csv
     from edgepose.eval.bop_run import bop_codebooks, read_detections, run_bop
@@ -76,6 +77,12 @@ def bop(
             wanted = [t for t in wanted if (t.scene_id, t.im_id) in set(keep)]
         if not wanted:
             raise Failure(f"{dataset_dir}: no targets to estimate (check --split, --scenes and --targets)")
+        scored = all(dataset.has_ground_truth(s) for s in {t.scene_id for t in wanted})
+        if masks == "gt" and not scored:
+            raise Failure(
+                f"{dataset_dir}: this split's ground truth (scene_gt.json, mask_visib/) is not published; "
+                "give a detector's masks with --masks DETECTIONS.json"
+            )
         detections = None if masks == "gt" else read_detections(masks)
         obj_ids = sorted({t.obj_id for t in wanted})
         executor = executor_for(ray or ray_address is not None, ray_address, cpus_per_task)
@@ -97,11 +104,13 @@ def bop(
         out.mkdir(parents=True, exist_ok=True)
         stem = f"edgepose_{dataset.name}-{dataset.split}"
         write_bop_csv(out / f"{stem}.csv", rows)
-        with err.status("scoring: VSD, MSSD, MSPD, ADD(-S)"):
-            scores = score_bop(dataset, rows, wanted)
-        table = scores.markdown()
-        (out / f"{stem}_scores.json").write_text(json.dumps(scores.to_json(), indent=1) + "\n")
-        (out / f"{stem}_scores.md").write_text(table)
+        table = "no ground truth published for this split: the results CSV is for the BOP server to score\n"
+        if scored:
+            with err.status("scoring: VSD, MSSD, MSPD, ADD(-S)"):
+                scores = score_bop(dataset, rows, wanted)
+            table = scores.markdown()
+            (out / f"{stem}_scores.json").write_text(json.dumps(scores.to_json(), indent=1) + "\n")
+            (out / f"{stem}_scores.md").write_text(table)
     stdout_console().print(table, markup=False)
     times = sorted({(r.scene_id, r.im_id): r.time for r in rows}.values())
     median = f"{1000 * float(np.median(times)):.1f} ms" if times else "n/a"

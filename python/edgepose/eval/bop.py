@@ -152,6 +152,8 @@ def _parse_row(line: str) -> BopRow:
 MM = 0.001
 #: Targets less visible than this are not counted (BOP: 10 % of the surface).
 MIN_VISIBLE_FRACTION = 0.1
+#: Folders of object models looked for, in order (T-LESS has ``models_cad/``).
+MODEL_FOLDERS = ("models", "models_cad", "models_eval")
 #: The targets files looked for beside the split folder, in order.
 TARGETS_FILES = ("{split}_targets_bop19.json", "test_targets_bop19.json", "{split}_targets_bop24.json")
 
@@ -171,7 +173,8 @@ class BopObject:
     symmetry: Symmetry
     """``symmetries_discrete`` and ``symmetries_continuous``, object frame, metres."""
     mesh: Path
-    """``models/obj_OBJID.ply``: the mesh codebooks are built from (millimetres)."""
+    """``models/obj_OBJID.ply`` (or ``models_cad/``, ``models_eval/``): the
+    mesh codebooks are built from (millimetres)."""
     eval_mesh: Path
     """``models_eval/obj_OBJID.ply`` when the dataset has it (the BOP metrics
     use it), else ``mesh``."""
@@ -253,9 +256,9 @@ class BopDataset:
     @cached_property
     def objects(self) -> dict[int, BopObject]:
         """Every object of ``models_info.json``, by id."""
-        models = next((self.root / d for d in ("models", "models_eval") if (self.root / d).is_dir()), None)
+        models = next((self.root / d for d in MODEL_FOLDERS if (self.root / d).is_dir()), None)
         if models is None:
-            raise BopDatasetError(f"{self.root}: no models/ or models_eval/ folder")
+            raise BopDatasetError(f"{self.root}: no model folder ({', '.join(d + '/' for d in MODEL_FOLDERS)})")
         info = _read_json(models / "models_info.json")
         eval_dir = self.root / "models_eval"
         objects = {}
@@ -280,8 +283,13 @@ class BopDataset:
         return sorted(int(d.name) for d in self.split_dir.iterdir() if d.is_dir() and d.name.isdigit())
 
     def image_ids(self, scene_id: int) -> list[int]:
-        """The images of a scene with annotations, ascending."""
-        return sorted(int(k) for k in self._scene(scene_id)[1])
+        """The images of a scene (``scene_camera.json``), ascending."""
+        return sorted(int(k) for k in self._scene(scene_id)[0])
+
+    def has_ground_truth(self, scene_id: int) -> bool:
+        """Whether the scene's poses are published (``scene_gt.json``; some
+        test splits withhold them: estimates can be made, not scored here)."""
+        return (self.split_dir / f"{scene_id:06d}" / "scene_gt.json").is_file()
 
     def image(self, scene_id: int, im_id: int) -> BopImage:
         """Camera and annotations of one image (metres)."""
@@ -316,6 +324,11 @@ class BopDataset:
         wanted = None if scenes is None else set(scenes)
         path = Path(targets_file) if targets_file is not None else self._default_targets_file()
         if path is None:
+            if not all(self.has_ground_truth(s) for s in self.scene_ids()):
+                raise BopDatasetError(
+                    f"{self.root}: no targets file ({', '.join(p.format(split=self.split) for p in TARGETS_FILES)}) "
+                    "and no scene_gt.json to find the objects in: give one with --targets"
+                )
             entries = [{"scene_id": s, "im_id": i} for s in self.scene_ids() for i in self.image_ids(s)]
         else:
             entries = _read_json(path)
@@ -354,10 +367,10 @@ class BopDataset:
             where = self.split_dir / f"{scene_id:06d}"
             if not where.is_dir():
                 raise BopDatasetError(f"{where}: no such scene folder")
-            info = where / "scene_gt_info.json"
+            gt, info = where / "scene_gt.json", where / "scene_gt_info.json"
             self._scenes[scene_id] = (
                 _read_json(where / "scene_camera.json"),
-                _read_json(where / "scene_gt.json"),
+                _read_json(gt) if gt.is_file() else {},
                 _read_json(info) if info.is_file() else {},
             )
         return self._scenes[scene_id]
