@@ -33,7 +33,7 @@ import edgepose
 import numpy as np
 from edgepose.cloud import dilate
 from edgepose.eval.bop import YCBV_OBJ_ID, BopDataset
-from edgepose.eval.bop_run import Detection, bop_codebooks, run_bop
+from edgepose.eval.bop_run import Detection, bop_codebooks, encode_rle, run_bop
 from edgepose.eval.bop_scenes import write_bop_dataset
 from edgepose.eval.bop_score import score_bop
 from edgepose.model import load_model, read_mesh
@@ -170,7 +170,7 @@ def _spilled(dataset: BopDataset, targets: list) -> dict[tuple[int, int], list[D
         for g in image.gts:
             if g.obj_id == t.obj_id:
                 mask = dilate(image.mask(g.gt_id), SPILL_PX)
-                det = Detection(t.scene_id, t.im_id, t.obj_id, g.visib_fract, mask, -1.0)
+                det = Detection(t.scene_id, t.im_id, t.obj_id, g.visib_fract, encode_rle(mask), -1.0)
                 out.setdefault((t.scene_id, t.im_id), []).append(det)
     return out
 

@@ -17,7 +17,7 @@ import trimesh
 from conftest import SHIPPED
 from edgepose.errors import InvalidCloudError
 from edgepose.eval.bop import BopDataset, BopDatasetError, BopRow, read_bop_csv
-from edgepose.eval.bop_run import bop_codebooks, decode_rle, read_detections, run_bop
+from edgepose.eval.bop_run import bop_codebooks, decode_rle, encode_rle, read_detections, run_bop
 from edgepose.eval.bop_scenes import write_bop_dataset
 from edgepose.eval.bop_score import score_bop
 from edgepose.io import read_mask_png
@@ -231,11 +231,8 @@ def _by_image(rows):
 
 
 def rle_counts(mask: np.ndarray) -> list[int]:
-    """Uncompressed COCO RLE of ``mask``: column-major runs, background first."""
-    flat = mask.T.ravel()
-    bounds = np.concatenate([[0], np.flatnonzero(flat[1:] != flat[:-1]) + 1, [flat.size]])
-    runs = np.diff(bounds).tolist()
-    return [0, *runs] if flat[0] else runs
+    """Uncompressed COCO RLE run lengths of ``mask``."""
+    return encode_rle(mask)["counts"]
 
 
 def rle_string(counts: list[int]) -> str:
@@ -259,6 +256,8 @@ def test_rle_decoding_by_hand():
     expected = np.array([[False, False], [True, False], [True, False]])
     assert (decode_rle({"counts": [1, 2, 3], "size": [3, 2]}) == expected).all()
     assert (decode_rle({"counts": "123", "size": [3, 2]}) == expected).all()
+    assert encode_rle(expected) == {"counts": [1, 2, 3], "size": [3, 2]}
+    assert encode_rle(~expected)["counts"] == [0, 1, 2, 3]  # a mask pixel first: an empty first run
     # Runs 1, 2, 1, 2: both columns background, mask, mask. Compressed, the
     # fourth run is stored as its difference to the second (0: "0").
     assert rle_string([1, 2, 1, 2]) == "1210"
@@ -364,3 +363,31 @@ def test_a_split_without_published_ground_truth_gives_the_csv_alone(dataset_dir,
     assert "no ground truth published" in result.stdout
     assert len(read_bop_csv(tmp_path / "b" / "edgepose_itodd_like-test.csv")) == 9
     assert not (tmp_path / "b" / "edgepose_itodd_like-test_scores.json").exists()
+
+
+def test_scoring_reads_models_eval_and_other_splits_keep_their_own_targets(dataset_dir, tmp_path):
+    copy = tmp_path / "withval"
+    shutil.copytree(dataset_dir, copy)
+    # models_eval/models_info.json, when there, gives the diameters and symmetries the scores use.
+    (copy / "models_eval").mkdir()
+    info = json.loads((copy / "models" / "models_info.json").read_text())
+    info["2"]["diameter"] = 200.0
+    (copy / "models_eval" / "models_info.json").write_text(json.dumps(info))
+    objects = BopDataset(copy).objects
+    assert objects[2].diameter == pytest.approx(0.2) and objects[2].mesh.parent.name == "models"
+    # The test split's targets file never stands in for another split's.
+    (copy / "test").rename(copy / "val")
+    (copy / "test_targets_bop19.json").write_text(
+        json.dumps([{"scene_id": 1, "im_id": 0, "obj_id": 1, "inst_count": 1}])
+    )
+    val = BopDataset(copy, "val").targets()
+    assert len(val) == len(BopDataset(dataset_dir).targets()) > 1
+
+
+def test_one_image_with_two_times_is_refused(dataset):
+    rows = truth_rows(dataset)
+    first = rows[0]
+    odd = BopRow(first.scene_id, first.im_id, first.obj_id, 0.1, first.R, first.t, first.time + 0.5)
+    with pytest.raises(ValueError, match="one time per image"):
+        score_bop(dataset, [*rows, odd], dataset.targets())
+    assert score_bop(dataset, rows, dataset.targets()).time == pytest.approx(0.01)

@@ -41,7 +41,8 @@ class FramePoses:
     too few measured pixels); None for the objects that have one."""
     seconds: float
     """Wall-clock time from the depth image to the last pose, seconds: the
-    per-image time the BOP benchmark records."""
+    per-image time the BOP benchmark records (the networks' first load,
+    once per process, is not counted)."""
     timings: dict = field(default_factory=dict)
     """Seconds per shared step: ``queries`` (clouds and stage 1, all
     objects), ``encode`` (the one batched ONNX call), ``search`` (stages 2–5
@@ -69,15 +70,16 @@ def estimate_many(
     detector's mask that spills is fine, as for :func:`edgepose.estimate`).
 
     ``workers`` threads share the objects (default: one per core, at most one
-    per object); the default encoder runs the batch on as many threads. A
+    per object); the default encoder runs the batch on every core. A
     bad frame (depth, ``K``, a mask's shape, a codebook of another encoder)
     raises; an object whose mask gives no usable cloud gets
     ``None`` and its error in :attr:`FramePoses.errors`, and the others
     their poses."""
+    # The batched encoding runs alone, so it may use every core (one
+    # encoder for every call: loading one is not a frame's work).
+    encoder = encoder or default_encoder(threads=os.cpu_count() or 1)
     t0 = time.perf_counter()
     workers = max(1, min(workers or os.cpu_count() or 1, len(objects)))
-    # The batched encoding runs alone, so it may use every worker's core.
-    encoder = encoder or default_encoder(threads=workers)
     z, measured, K = metric_depth(depth, K, depth_scale)
     masks = [checked_mask(mask, z.shape) for mask, _ in objects]
     codebooks = [codebook for _, codebook in objects]

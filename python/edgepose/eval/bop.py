@@ -255,18 +255,26 @@ class BopDataset:
 
     @cached_property
     def objects(self) -> dict[int, BopObject]:
-        """Every object of ``models_info.json``, by id."""
+        """Every object of ``models_info.json``, by id. Diameters and
+        symmetries come from ``models_eval/models_info.json`` when the
+        dataset has it (what the BOP toolkit scores with), else from the
+        models' own."""
         models = next((self.root / d for d in MODEL_FOLDERS if (self.root / d).is_dir()), None)
         if models is None:
             raise BopDatasetError(f"{self.root}: no model folder ({', '.join(d + '/' for d in MODEL_FOLDERS)})")
-        info = _read_json(models / "models_info.json")
         eval_dir = self.root / "models_eval"
+        info_file = eval_dir / "models_info.json"
+        if not info_file.is_file():
+            info_file = models / "models_info.json"
+        info = _read_json(info_file)
+        if not isinstance(info, dict):
+            raise BopDatasetError(f"{info_file}: expected an object of models by id")
         objects = {}
         for key, entry in info.items():
-            obj_id = int(key)
-            mesh = models / f"obj_{obj_id:06d}.ply"
-            eval_mesh = eval_dir / mesh.name
             try:
+                obj_id = int(key)
+                mesh = models / f"obj_{obj_id:06d}.ply"
+                eval_mesh = eval_dir / mesh.name
                 objects[obj_id] = BopObject(
                     obj_id,
                     float(entry["diameter"]) * MM,
@@ -275,7 +283,7 @@ class BopDataset:
                     eval_mesh if eval_mesh.is_file() else mesh,
                 )
             except (KeyError, TypeError, ValueError) as e:
-                raise BopDatasetError(f"{models / 'models_info.json'}: object {key}: {type(e).__name__}: {e}") from None
+                raise BopDatasetError(f"{info_file}: object {key}: {type(e).__name__}: {e}") from None
         return objects
 
     def scene_ids(self) -> list[int]:
@@ -357,6 +365,8 @@ class BopDataset:
 
     def _default_targets_file(self) -> Path | None:
         for pattern in TARGETS_FILES:
+            if pattern.startswith("test_") and not self.split.startswith("test"):
+                continue  # the test split's targets never stand in for another split's
             path = self.root / pattern.format(split=self.split)
             if path.is_file():
                 return path

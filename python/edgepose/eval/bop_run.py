@@ -33,10 +33,16 @@ class Detection:
     im_id: int
     obj_id: int
     score: float
-    mask: np.ndarray
-    """(H, W) bool."""
+    rle: dict
+    """Its mask as an uncompressed COCO RLE (``counts``: run lengths,
+    ``size``: [H, W]): decoded only when used (:meth:`mask`), since a
+    detections file holds many more masks than are estimated."""
     time: float
     """Seconds the detector spent on the image (-1 when unknown)."""
+
+    def mask(self) -> np.ndarray:
+        """(H, W) bool."""
+        return decode_rle(self.rle)
 
 
 def bop_codebooks(
@@ -83,6 +89,7 @@ def run_bop(
     by_image: dict[tuple[int, int], dict[int, int]] = {}
     for t in targets:
         by_image.setdefault((t.scene_id, t.im_id), {})[t.obj_id] = t.inst_count
+    encoder = encoder or default_encoder(threads=os.cpu_count() or 1)  # loaded before any image is timed
     rows: list[BopRow] = []
     for (scene_id, im_id), wanted in sorted(by_image.items()):
         image = dataset.image(scene_id, im_id)
@@ -95,7 +102,7 @@ def run_bop(
             else:
                 found = [d for d in detections.get((scene_id, im_id), []) if d.obj_id == obj_id]
                 found = sorted(found, key=lambda d: -d.score)[:inst_count]
-                masks, scores = [d.mask for d in found], [d.score for d in found]
+                masks, scores = [d.mask() for d in found], [d.score for d in found]
                 det_time = max([det_time] + [d.time for d in found])
             objects += [(mask, codebooks[obj_id]) for mask in masks]
             obj_ids += [obj_id] * len(masks)
@@ -141,7 +148,7 @@ def read_detections(path: str | os.PathLike) -> dict[tuple[int, int], list[Detec
                 int(entry["image_id"]),
                 int(entry["category_id"]),
                 float(entry["score"]),
-                decode_rle(entry["segmentation"]),
+                _checked_rle(entry["segmentation"]),
                 float(entry.get("time", -1.0)),
             )
         except (KeyError, TypeError, ValueError) as e:
@@ -156,15 +163,34 @@ def decode_rle(segmentation: dict) -> np.ndarray:
     column-major pixel order; ``counts`` a list of run lengths, or COCO's
     compressed string (pycocotools' ``mask.encode``). ``ValueError`` if the
     runs do not cover the image exactly."""
+    rle = _checked_rle(segmentation)
+    height, width = rle["size"]
+    values = np.zeros(len(rle["counts"]), dtype=bool)
+    values[1::2] = True
+    flat = np.repeat(values, rle["counts"])
+    return flat.reshape(width, height).T.copy()
+
+
+def encode_rle(mask: np.ndarray) -> dict:
+    """The uncompressed COCO RLE of an (H, W) bool ``mask`` (the inverse of
+    :func:`decode_rle`): for writing detections in BOP's format."""
+    mask = np.asarray(mask, dtype=bool)
+    flat = mask.T.ravel()
+    bounds = np.concatenate([[0], np.flatnonzero(flat[1:] != flat[:-1]) + 1, [flat.size]])
+    runs = np.diff(bounds).tolist()
+    return {"counts": [0, *runs] if flat.size and flat[0] else runs, "size": list(mask.shape)}
+
+
+def _checked_rle(segmentation: dict) -> dict:
+    """``segmentation`` as ``{"counts": [run lengths], "size": [H, W]}``,
+    compressed counts expanded; ``ValueError`` if the runs do not cover the
+    image exactly."""
     height, width = (int(v) for v in segmentation["size"])
     counts = segmentation["counts"]
     runs = _rle_string_counts(counts) if isinstance(counts, (str, bytes)) else [int(c) for c in counts]
     if any(r < 0 for r in runs) or sum(runs) != height * width:
         raise ValueError(f"RLE runs cover {sum(runs)} pixels, not {height}×{width}, or are negative")
-    values = np.zeros(len(runs), dtype=bool)
-    values[1::2] = True
-    flat = np.repeat(values, runs)
-    return flat.reshape(width, height).T.copy()
+    return {"counts": runs, "size": [height, width]}
 
 
 def _rle_string_counts(text: str | bytes) -> list[int]:

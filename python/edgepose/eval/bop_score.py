@@ -69,7 +69,8 @@ class BopScores:
     """Images with at least one target."""
     time: float
     """Mean seconds per image over the images with estimates (the results'
-    ``time``; NaN when none is known)."""
+    ``time``), as the BOP toolkit reports it; NaN when an image's time is
+    unknown (negative)."""
 
     def to_json(self) -> dict:
         """Plain types, object ids as strings (JSON keys)."""
@@ -134,23 +135,27 @@ def score_bop(
 ) -> BopScores:
     """Score ``rows`` (estimates, any order) against ``targets``.
     ``vsd_delta``: the VSD visibility tolerance, metres (default: BOP's for
-    the dataset's name, else 15 mm)."""
+    the dataset's name, else 15 mm). ``ValueError`` when one image's rows
+    disagree on its time (by more than 1 ms, as the toolkit checks)."""
     delta = vsd_delta if vsd_delta is not None else BOP_VSD_DELTAS.get(dataset.name, BOP_VSD_DELTA)
     by_image: dict[tuple[int, int], dict[int, int]] = {}
     for target in targets:
         by_image.setdefault((target.scene_id, target.im_id), {})[target.obj_id] = target.inst_count
     estimates: dict[tuple[int, int, int], list[BopRow]] = {}
+    image_times: dict[tuple[int, int], float] = {}
     for row in rows:
         estimates.setdefault((row.scene_id, row.im_id, row.obj_id), []).append(row)
+        known = image_times.setdefault((row.scene_id, row.im_id), row.time)
+        if abs(known - row.time) > 0.001:  # the toolkit refuses such a file too
+            raise ValueError(
+                f"scene {row.scene_id} image {row.im_id}: estimates with different times ({known} and {row.time} s); "
+                "BOP needs one time per image"
+            )
     models = _EvalModels(dataset)
     counts: dict[int, _Counts] = {}
-    times = []
     for (scene_id, im_id), wanted in sorted(by_image.items()):
         image = dataset.image(scene_id, im_id)
         depth = None
-        image_rows = [r for o in wanted for r in estimates.get((scene_id, im_id, o), [])]
-        if image_rows:
-            times.append(image_rows[0].time)
         for obj_id, inst_count in sorted(wanted.items()):
             obj_counts = counts.setdefault(obj_id, _Counts())
             gts = [g for g in image.gts if g.obj_id == obj_id]
@@ -167,14 +172,14 @@ def score_bop(
     overall = _Counts()
     for c in counts.values():
         overall.add(c)
-    known = [t for t in times if t >= 0]
+    times = list(image_times.values())
     return BopScores(
         dataset.name,
         dataset.split,
         overall.score(),
         {k: c.score() for k, c in counts.items()},
         len(by_image),
-        float(np.mean(known)) if known else float("nan"),
+        float(np.mean(times)) if times and min(times) >= 0 else float("nan"),
     )
 
 

@@ -439,7 +439,10 @@ def vsd(
 
     The mesh (``vertices`` (V, 3) object frame, metres; ``faces`` (F, 3)) is
     rendered at both poses with :func:`edgepose.eval.render.rasterize_depth`
-    (intrinsics ``fx, fy, cx, cy`` of ``K``, the size of ``depth_test``);
+    (intrinsics ``fx, fy, cx, cy`` of ``K``, the size of ``depth_test``;
+    pixel centres at integer coordinates, as OpenCV and BOP's K have them:
+    the toolkit's OpenGL renderer samples half a pixel off, so silhouette
+    edges, and VSD near its thresholds, can differ slightly);
     every depth image (metres, 0 = nothing) becomes a distance image,
     ``√((x̂·z)² + (ŷ·z)² + z²)`` with ``x̂ = (u − cx)/fx``, ``ŷ = (v − cy)/fy``
     (``depth_im_to_dist_im_fast``). Visibility, mode "bop19": a rendered
