@@ -6,12 +6,13 @@ bop`` computes it.
 
     .venv/bin/python benches/bench_bop.py [--scenes 2] [--images 10] [--objects 8] [--out benches/BOP.md]
 
-Dataset (written once to ``benches/.cache/ycbsyn/``, not committed): the five
+Datasets (written once to ``benches/.cache/``, not committed): the five
 shared YCB meshes as BOP objects (YCB-V ids; symmetries as edgepose detects
 them), ``--scenes`` × ``--images`` frames of ``--objects`` instances each
-(object ids cycled, so most frames hold an object twice) at 0.7–1.0 m,
-spread around the image centre in front of a tilted plane, hiding one
-another where they overlap; LINEMOD camera, 1 mm depth noise and steps, 1 %
+(object ids cycled, so most frames hold an object twice) at 0.7–1.0 m, on a
+ring around the image centre in front of a tilted plane, hiding one another
+where they overlap: two layouts, ``spread`` (mild occlusion) and
+``crowded`` (the ring ~⅓ as wide: heavy occlusion); LINEMOD camera, 1 mm depth noise and steps, 1 %
 dropout. Targets: every instance at least 10 % visible (BOP's rule).
 
 Stress levels reported: ``masks exact`` (the annotated visible masks) and
@@ -44,6 +45,10 @@ CACHE = REPO / "benches" / ".cache"
 SPILL_PX = 5
 
 
+#: Scene layouts: the ring (fractions of the image size) the objects are spread on.
+LAYOUTS = {"spread": (0.18, 0.3), "crowded": (0.06, 0.14)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", type=int, default=2)
@@ -54,64 +59,47 @@ def main() -> None:
     args = parser.parse_args()
     load_before = os.getloadavg()
     started = time.perf_counter()
-
-    root = CACHE / f"ycbsyn_{args.scenes}x{args.images}x{args.objects}"
-    if not (root / "test_targets_bop19.json").is_file():
-        meshes = {YCBV_OBJ_ID[p.stem]: read_mesh(p) for p in sorted(YCB.glob("*.ply"))}
-        symmetries = {i: edgepose.detect_symmetry(load_model(m, scale=1.0)) for i, m in meshes.items()}
-        write_bop_dataset(
-            root,
-            meshes,
-            scenes=args.scenes,
-            images=args.images,
-            objects_per_image=args.objects,
-            symmetries=symmetries,
-            distance=(0.7, 1.0),
-            seed=2024,
-        )
-    dataset = BopDataset(root)
-    targets = dataset.targets()
-    books = bop_codebooks(dataset, {t.obj_id for t in targets}, CACHE / "ycbsyn_codebooks")
     names = {v: k for k, v in YCBV_OBJ_ID.items()}
+    sections = []
+    for layout, spread in LAYOUTS.items():
+        dataset = _dataset(args, layout, spread)
+        targets = dataset.targets()
+        books = bop_codebooks(dataset, {t.obj_id for t in targets}, CACHE / "ycbsyn_codebooks")
+        times, counts = _time_images(dataset, targets, books, args.repeats)
+        scores = {}
+        for level, detections in (("masks exact", None), (f"masks spill {SPILL_PX} px", _spilled(dataset, targets))):
+            rows = run_bop(dataset, targets, books, detections=detections)
+            scores[level] = score_bop(dataset, rows, targets)
+        baseline = np.median(times["estimate"])
+        timing_rows = [
+            f"| {name} | {1000 * np.median(ts):.1f} | {1000 * np.percentile(ts, 90):.1f} | "
+            f"{baseline / np.median(ts):.2f}× |"
+            for name, ts in times.items()
+        ]
+        score_rows = []
+        for level, s in scores.items():
+            for obj_id, o in sorted(s.objects.items()):
+                score_rows.append(_score_row(level, f"{names.get(obj_id, obj_id)} ({obj_id})", o))
+            score_rows.append(_score_row(level, "**all**", s.overall))
+        visib = [g.visib_fract for t in targets for g in dataset.image(t.scene_id, t.im_id).gts if g.obj_id == t.obj_id]
+        sections.append(f"""## Layout `{layout}`: objects on a ring of {spread[0]:.2f}–{spread[1]:.2f} × the image size
 
-    # Per-image time: the same objects three ways, each image `repeats` times.
-    times: dict[str, list[float]] = {name: [] for name in METHODS}
-    counts = []
-    for scene_id in dataset.scene_ids():
-        for im_id in dataset.image_ids(scene_id):
-            image = dataset.image(scene_id, im_id)
-            depth = image.depth()
-            wanted = {(t.obj_id) for t in targets if (t.scene_id, t.im_id) == (scene_id, im_id)}
-            objects = [
-                (image.mask(g.gt_id), books[g.obj_id]) for g in image.gts if g.obj_id in wanted and g.visib_fract >= 0.1
-            ]
-            counts.append(len(objects))
-            for name, run in METHODS.items():
-                laps = []
-                for _ in range(args.repeats):
-                    t0 = time.perf_counter()
-                    run(depth, image.K, objects)
-                    laps.append(time.perf_counter() - t0)
-                times[name].append(float(np.median(laps)))
+{len(counts)} images, {np.median(counts):.0f} objects estimated per image (median; {min(counts)}–{max(counts)}),
+{sum(t.inst_count for t in targets)} targets; visible fraction of the targets: median {np.median(visib):.2f},
+10th percentile {np.percentile(visib, 10):.2f}.
 
-    # The BOP score at two mask qualities.
-    scores = {}
-    for level, detections in (("masks exact", None), (f"masks spill {SPILL_PX} px", _spilled(dataset, targets))):
-        rows = run_bop(dataset, targets, books, detections=detections)
-        scores[level] = score_bop(dataset, rows, targets)
+### Per-image time (masks exact)
 
-    baseline = np.median(times["estimate"])
-    timing_rows = [
-        f"| {name} | {1000 * np.median(ts):.1f} | {1000 * np.percentile(ts, 90):.1f} | "
-        f"{baseline / np.median(ts):.2f}× |"
-        for name, ts in times.items()
-    ]
-    score_rows = []
-    for level, s in scores.items():
-        for obj_id, o in sorted(s.objects.items()):
-            score_rows.append(_score_row(level, f"{names.get(obj_id, obj_id)} ({obj_id})", o))
-        score_rows.append(_score_row(level, "**all**", s.overall))
-    visib = [g.visib_fract for t in targets for g in dataset.image(t.scene_id, t.im_id).gts if g.obj_id == t.obj_id]
+| method | median ms | p90 ms | speed-up vs estimate |
+| --- | ---: | ---: | ---: |
+{chr(10).join(timing_rows)}
+
+### BOP score (%)
+
+| stress | object | targets | AR | AR_VSD | AR_MSSD | AR_MSPD | ADD(-S) |
+| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |
+{chr(10).join(score_rows)}
+""")
     text = f"""# BOP benchmark (synthetic YCB scenes)
 
 Generated by `benches/bench_bop.py`; do not edit by hand.
@@ -125,26 +113,55 @@ Generated by `benches/bench_bop.py`; do not edit by hand.
 - machine: {platform.machine()}, {os.cpu_count()} CPUs; edgepose {edgepose.__version__}
 - load average (1 min) before: {load_before[0]:.2f}, after: {os.getloadavg()[0]:.2f}
 - wall time: {(time.perf_counter() - started) / 60:.1f} min
-- {len(counts)} images, {np.median(counts):.0f} objects estimated per image (median; {min(counts)}–{max(counts)}),
-  {sum(t.inst_count for t in targets)} targets; visible fraction of the targets: median {np.median(visib):.2f},
-  10th percentile {np.percentile(visib, 10):.2f}
 
 {__doc__.split(chr(10) + chr(10), 1)[1]}
-## Per-image time (masks exact)
-
-| method | median ms | p90 ms | speed-up vs estimate |
-| --- | ---: | ---: | ---: |
-{chr(10).join(timing_rows)}
-
-## BOP score (%)
-
-| stress | object | targets | AR | AR_VSD | AR_MSSD | AR_MSPD | ADD(-S) |
-| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |
-{chr(10).join(score_rows)}
-"""
+{chr(10).join(sections)}"""
     args.out.write_text(text)
     print(text)
     print(f"wrote {args.out}")
+
+
+def _dataset(args: argparse.Namespace, layout: str, spread: tuple[float, float]) -> BopDataset:
+    """The layout's synthetic dataset, written once into the cache."""
+    root = CACHE / f"ycbsyn_{layout}_{args.scenes}x{args.images}x{args.objects}"
+    if not (root / "test_targets_bop19.json").is_file():
+        meshes = {YCBV_OBJ_ID[p.stem]: read_mesh(p) for p in sorted(YCB.glob("*.ply"))}
+        symmetries = {i: edgepose.detect_symmetry(load_model(m, scale=1.0)) for i, m in meshes.items()}
+        write_bop_dataset(
+            root,
+            meshes,
+            scenes=args.scenes,
+            images=args.images,
+            objects_per_image=args.objects,
+            symmetries=symmetries,
+            distance=(0.7, 1.0),
+            spread=spread,
+            seed=2024,
+        )
+    return BopDataset(root)
+
+
+def _time_images(dataset: BopDataset, targets: list, books: dict, repeats: int) -> tuple[dict, list[int]]:
+    """Per image, the median of ``repeats`` runs of each of METHODS (seconds), and the objects per image."""
+    times: dict[str, list[float]] = {name: [] for name in METHODS}
+    counts = []
+    for scene_id in dataset.scene_ids():
+        for im_id in dataset.image_ids(scene_id):
+            image = dataset.image(scene_id, im_id)
+            depth = image.depth()
+            wanted = {t.obj_id for t in targets if (t.scene_id, t.im_id) == (scene_id, im_id)}
+            objects = [
+                (image.mask(g.gt_id), books[g.obj_id]) for g in image.gts if g.obj_id in wanted and g.visib_fract >= 0.1
+            ]
+            counts.append(len(objects))
+            for name, run in METHODS.items():
+                laps = []
+                for _ in range(repeats):
+                    t0 = time.perf_counter()
+                    run(depth, image.K, objects)
+                    laps.append(time.perf_counter() - t0)
+                times[name].append(float(np.median(laps)))
+    return times, counts
 
 
 def _one_by_one(depth: np.ndarray, K: np.ndarray, objects: list) -> None:

@@ -39,6 +39,7 @@ def write_bop_dataset(
     symmetries: Mapping[int, Symmetry] | None = None,
     depth_scales: Sequence[float] = (1.0, 0.1),
     distance: tuple[float, float] = (0.6, 0.9),
+    spread: tuple[float, float] = (0.18, 0.3),
     depth_noise: float = 0.001,
 ) -> Path:
     """Write a dataset of ``scenes`` × ``images`` frames to ``root``: models
@@ -46,8 +47,9 @@ def write_bop_dataset(
     ``symmetries`` in ``models_info.json``), ``test/SCENE/`` folders and
     ``test_targets_bop19.json``. Each frame shows ``objects_per_image``
     instances (object ids cycled, so a frame may hold one object twice) at
-    random rotations and ``distance`` metres, spread across the image; they
-    may hide one another. Scene ``s`` stores depth with BOP ``depth_scale``
+    random rotations and ``distance`` metres, on a ring around the image
+    centre of radius ``spread`` (fractions of the image's width and height;
+    smaller: more crowded); they may hide one another. Scene ``s`` stores depth with BOP ``depth_scale``
     ``depth_scales[s % len(depth_scales)]`` (mm per unit). Returns ``root``."""
     root = Path(root)
     rng = np.random.default_rng(seed)
@@ -63,7 +65,7 @@ def write_bop_dataset(
         scene_gt_info: dict[str, list] = {}
         for im_id in range(images):
             obj_ids = [ids[(im_id + k + scene_id) % len(ids)] for k in range(objects_per_image)]
-            poses = _spread_poses(rng, camera, [meshes[o] for o in obj_ids], distance)
+            poses = _spread_poses(rng, camera, [meshes[o] for o in obj_ids], distance, spread)
             depth, visible, alone = _render_frame(rng, camera, [meshes[o] for o in obj_ids], poses, depth_noise)
             write_png(scene_dir / "depth" / f"{im_id:06d}.png", np.round(depth / MM / depth_scale).astype(np.uint16))
             scene_camera[str(im_id)] = {"cam_K": camera.K.ravel().tolist(), "depth_scale": depth_scale}
@@ -135,12 +137,16 @@ def _write_models(folder: Path, meshes: Mapping[int, trimesh.Trimesh], symmetrie
 
 
 def _spread_poses(
-    rng: np.random.Generator, camera: Camera, meshes: Sequence[trimesh.Trimesh], distance: tuple[float, float]
+    rng: np.random.Generator,
+    camera: Camera,
+    meshes: Sequence[trimesh.Trimesh],
+    distance: tuple[float, float],
+    spread: tuple[float, float],
 ) -> list[np.ndarray]:
     """A random ``T_cam_obj`` per mesh: uniformly random rotation, the
     bounding-box centre on its own ray, the rays spread evenly around the
-    image centre (a ring of radius ~¼ of the image, jittered), at a depth
-    drawn from ``distance``."""
+    image centre (a ring of radius drawn from ``spread`` × the image's size,
+    jittered), at a depth drawn from ``distance``."""
     poses = []
     start = rng.uniform(0, 2 * np.pi)
     for k, mesh in enumerate(meshes):
@@ -149,7 +155,7 @@ def _spread_poses(
         q = rng.normal(size=4)
         R = _rotation_from_quaternion(q / np.linalg.norm(q))
         angle = start + 2 * np.pi * k / len(meshes) + rng.uniform(-0.3, 0.3)
-        radius = 0.0 if len(meshes) == 1 else rng.uniform(0.18, 0.3)
+        radius = 0.0 if len(meshes) == 1 else rng.uniform(*spread)
         u = camera.cx + radius * camera.width * np.cos(angle)
         v = camera.cy + radius * camera.height * np.sin(angle)
         z = rng.uniform(*distance)
