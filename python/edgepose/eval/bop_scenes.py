@@ -116,8 +116,11 @@ def _write_models(folder: Path, meshes: Mapping[int, trimesh.Trimesh], symmetrie
         scaled.export(folder / f"obj_{obj_id:06d}.ply")
         vertices = np.asarray(scaled.vertices)
         lo, size = vertices.min(0), np.ptp(vertices, axis=0)
-        hull = scaled.convex_hull.vertices
-        diameter = float(max(np.linalg.norm(hull[:, None] - hull[None], axis=2).max(), 0.0))
+        hull = np.asarray(scaled.convex_hull.vertices)
+        # The largest distance between two vertices (they lie on the hull), a few hull rows at a time.
+        diameter = max(
+            float(np.linalg.norm(hull[i : i + 256, None] - hull[None], axis=2).max()) for i in range(0, len(hull), 256)
+        )
         entry: dict[str, object] = {
             "diameter": diameter,
             **{f"min_{a}": float(v) for a, v in zip("xyz", lo)},

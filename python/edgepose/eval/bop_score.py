@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from edgepose.eval.bop import BopDataset, BopGt, BopObject, BopRow, BopTarget
+from edgepose.eval.bop import MM, BopDataset, BopGt, BopObject, BopRow, BopTarget
 from edgepose.eval.metrics import (
     BOP_MSPD_THRESHOLDS,
     BOP_MSSD_THRESHOLDS,
@@ -193,8 +193,7 @@ class _EvalModels:
 
     def __getitem__(self, obj_id: int) -> tuple[BopObject, np.ndarray, np.ndarray, np.ndarray]:
         if obj_id not in self._cache:
-            from edgepose.eval.bop import MM
-            from edgepose.model import read_mesh
+            from edgepose.model import read_mesh  # trimesh: imported when scoring starts
 
             obj = self.dataset.objects[obj_id]
             mesh = read_mesh(obj.eval_mesh, scale=MM)
