@@ -4,15 +4,24 @@
 
 use std::num::NonZero;
 
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Vector3};
 
 use crate::Point3;
 
+/// The model's kd-tree: leaves of 8 points, not kiddo's default 32. ICP,
+/// scoring and verification query it tens of thousands of times per
+/// estimate for points near the surface, where small leaves are faster:
+/// ICP on 1,024 points × 20 iterations took 25–30 % less time on the YCB
+/// models (e.g. 6.1 → 4.3 ms), 4 and 16 were slower, 128 twice as slow.
+/// Nearest neighbours are exact whatever the leaf size.
+type ModelTree = ImmutableKdTree<f32, u32, 3, 8>;
+
 /// The model's points and normals with a kd-tree over the points (model
 /// frame, metres). Immutable, so many threads may query it at once.
 pub struct ModelIndex {
-    tree: ImmutableKdTree<f32, 3>,
+    tree: ModelTree,
     points: Vec<Point3>,
     normals: Vec<Point3>,
 }
@@ -41,7 +50,7 @@ impl Pose {
 impl ModelIndex {
     pub fn new(points: Vec<Point3>, normals: Vec<Point3>) -> Self {
         assert_eq!(points.len(), normals.len(), "one normal per point");
-        let tree = ImmutableKdTree::new_from_slice(&points);
+        let tree = ModelTree::new_from_slice(&points);
         Self {
             tree,
             points,
