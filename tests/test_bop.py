@@ -118,6 +118,12 @@ def test_a_typed_split_folder_is_found_and_missing_files_are_named(dataset_dir, 
     (copy / "test").rename(copy / "test_primesense")
     (copy / "models").rename(copy / "models_cad")
     assert BopDataset(copy).split_dir.name == "test_primesense"
+    assert BopDataset(copy, "test_primesense").split == "test"  # results: tless-test
+    (copy / "test_kinect").mkdir()  # two sensors (HB): the split must be named
+    with pytest.raises(BopDatasetError, match=r"no test/ split folder \(found: .*test_kinect, test_primesense\)"):
+        BopDataset(copy)
+    assert BopDataset(copy, "test_kinect").split_dir.name == "test_kinect"
+    (copy / "test_kinect").rmdir()
     assert BopDataset(copy).objects[2].mesh.parent.name == "models_cad"
     with pytest.raises(BopDatasetError, match="no val/ split folder"):
         BopDataset(copy, "val")

@@ -28,7 +28,12 @@ def bop(
     dataset_dir: Annotated[
         Path, typer.Argument(help="A BOP dataset folder (models/, test/, test_targets_bop19.json), e.g. lmo/.")
     ],
-    split: Annotated[str, typer.Option(help="Split folder (test; test_primesense is found as test).")] = "test",
+    split: Annotated[
+        str,
+        typer.Option(
+            help="Split (test; a sole test_primesense folder is found as test; name one of several: test_kinect)."
+        ),
+    ] = "test",
     targets: Annotated[
         Path | None,
         typer.Option(help="Targets file (default: the dataset's test_targets_bop19.json, else all ≥10 % visible)."),

@@ -249,7 +249,9 @@ class BopDataset:
             raise BopDatasetError(f"{self.root}: no such dataset folder")
         self.name = self.root.resolve().name
         """The dataset's name, from its folder (``lmo``): names the results file."""
-        self.split = split
+        self.split = split.split("_")[0]
+        """The split without its type (``test`` for ``test_primesense``), as
+        BOP names results files and targets files."""
         self.split_dir = _split_dir(self.root, split)
         self._scenes: dict[int, tuple[dict, dict, dict]] = {}
 
