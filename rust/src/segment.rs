@@ -24,6 +24,9 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use crate::Point3;
 
+/// No component (a point in nobody's shadow).
+const NONE: usize = usize::MAX;
+
 /// Tuning of [`segment`]; every distance is relative, so one setting
 /// serves any range and object size.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -51,6 +54,16 @@ pub struct SegmentSettings {
     pub max_shadowed_fraction: f64,
     /// See `max_shadowed_fraction`.
     pub shadow_spacings: f64,
+    /// A component that hides at least this many of the object's points
+    /// (it lies in front of them, beside them in the image) ...
+    pub occluder_points: usize,
+    /// ... and has fewer points than this fraction of the object's is an
+    /// occluder the mask spilled onto, and is dropped. A larger one may be
+    /// the object's own part in front of another (kept). Set on the tuning
+    /// shapes: 0.05 kept every level's figure but one view and gained 6 of
+    /// 48 views at 70 % visible with 5 px spill; 0.1–0.3 cost views when
+    /// parts of the object hid others.
+    pub occluder_fraction: f64,
 }
 
 impl Default for SegmentSettings {
@@ -63,6 +76,8 @@ impl Default for SegmentSettings {
             max_component_offset: 0.8,
             max_shadowed_fraction: 0.5,
             shadow_spacings: 4.0,
+            occluder_points: 3,
+            occluder_fraction: 0.05,
         }
     }
 }
@@ -132,8 +147,8 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // it) are background the mask picked up, whatever their size.
     let root_of: Vec<usize> = (0..n).map(|i| components.find(i)).collect();
     let single = (0..n).filter(|&r| size[r] > 0).count() == 1;
-    let shadowed = if single {
-        vec![false; n]
+    let shadower = if single {
+        vec![NONE; n]
     } else {
         in_shadow(
             cloud,
@@ -143,6 +158,7 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
             radius as f64,
         )
     };
+    let shadowed: Vec<bool> = shadower.iter().map(|&r| r != NONE).collect();
     let mut shadowed_count = vec![0usize; n];
     for i in (0..n).filter(|&i| shadowed[i]) {
         shadowed_count[root_of[i]] += 1;
@@ -208,12 +224,20 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
         .expect("n > 0");
     let centroid = |root: usize| sum[root].map(|s| s / size[root] as f64);
     let anchor = centroid(largest);
+    // Components in front of the object that hide some of it: an occluder's
+    // surface the mask spilled onto.
+    let mut hides = vec![0usize; n];
+    for i in (0..n).filter(|&i| root_of[i] == largest && shadower[i] != NONE) {
+        hides[shadower[i]] += 1;
+    }
     let keep_root: Vec<bool> = (0..n)
         .map(|root| {
             root == largest
                 || (lit(root)
                     && size[root] as f64 >= settings.min_component_fraction * size[largest] as f64
-                    && distance(centroid(root), anchor) <= settings.max_component_offset * diameter)
+                    && distance(centroid(root), anchor) <= settings.max_component_offset * diameter
+                    && (hides[root] < settings.occluder_points
+                        || size[root] as f64 >= settings.occluder_fraction * size[largest] as f64))
         })
         .collect();
     Segmentation {
@@ -222,17 +246,18 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     }
 }
 
-/// Which inlier points lie in the shadow of another component: a point of
-/// another component lies within `lateral` metres of it by viewing direction
-/// (measured at the point's depth) and nearer the camera by more than `gap` metres.
+/// For each inlier point in the shadow of another component (a point of
+/// another component lies within `lateral` metres of it by viewing direction,
+/// measured at the point's depth, and nearer the camera by more than `gap`
+/// metres), the root of the first such component found; [`NONE`] otherwise.
 fn in_shadow(
     cloud: &[Point3],
     root_of: &[usize],
     inlier: &[bool],
     lateral: f64,
     gap: f64,
-) -> Vec<bool> {
-    let mut shadowed = vec![false; cloud.len()];
+) -> Vec<usize> {
+    let mut shadowed = vec![NONE; cloud.len()];
     let front: Vec<usize> = (0..cloud.len())
         .filter(|&i| inlier[i] && cloud[i][2] > 0.0)
         .collect();
@@ -252,9 +277,11 @@ fn in_shadow(
         if root_of[j] != root_of[i] && squared_distance(&rays[a], &rays[b]) <= reach * reach {
             let behind = (cloud[i][2] - cloud[j][2]) as f64;
             if behind > gap {
-                shadowed[i] = true;
-            } else if -behind > gap {
-                shadowed[j] = true;
+                if shadowed[i] == NONE {
+                    shadowed[i] = root_of[j];
+                }
+            } else if -behind > gap && shadowed[j] == NONE {
+                shadowed[j] = root_of[i];
             }
         }
     });
@@ -493,6 +520,45 @@ mod tests {
             y += spacing;
         }
         points
+    }
+
+    #[test]
+    fn spill_onto_an_occluder_in_front_is_dropped_but_a_large_front_part_is_kept() {
+        // A 14 × 10 cm object at 0.7 m; its right edge is hidden by an
+        // occluder at 0.6 m, and the mask spilled onto a strip of it beside
+        // the edge in the image (3 columns, 4 % of the object's points).
+        let object = plane(0.7, 0.002, (0.0, 0.14), (0.0, 0.1), |_, _| false);
+        let edge = 0.14 / 0.7 * 0.6; // the object's edge ray, at the occluder's depth
+        for (columns, dropped) in [(3, true), (12, false)] {
+            let width = columns as f32 * 0.002;
+            let strip = plane(
+                0.6,
+                0.002,
+                (edge, edge + width - 1e-4),
+                (0.0, 0.1 * 0.6 / 0.7),
+                |_, _| false,
+            );
+            let cloud: Vec<Point3> = object.iter().chain(&strip).copied().collect();
+            let found = segment(&cloud, 0.2, &SegmentSettings::default());
+            let kept_object = found.keep[..object.len()].iter().filter(|&&k| k).count();
+            let kept_strip = found.keep[object.len()..].iter().filter(|&&k| k).count();
+            assert!(
+                kept_object as f64 > 0.95 * object.len() as f64,
+                "{kept_object} of {}",
+                object.len()
+            );
+            if dropped {
+                assert_eq!(
+                    kept_strip,
+                    0,
+                    "a thin occluder strip of {} points was kept",
+                    strip.len()
+                );
+            } else {
+                // 12 columns: 17 % of the object's size, as large as a part of it in front of another.
+                assert_eq!(kept_strip, strip.len());
+            }
+        }
     }
 
     #[test]
