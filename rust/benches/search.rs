@@ -94,6 +94,20 @@ fn bench_search(c: &mut Criterion) {
     group.bench_function("icp_1024_points_20_iterations", |b| {
         b.iter(|| index.refine(&cloud, start, 20, 0.02))
     });
+    // What ICP asks 20,000 times an estimate: the nearest model point to a
+    // point near the surface (model frame, up to 3 mm off), through the grid
+    // of cells (`nearest`) and through the kd-tree alone.
+    let near: Vec<Point3> = points
+        .iter()
+        .step_by(4)
+        .map(|p| p.map(|v| v + 0.006 * (rng.next_f64() as f32 - 0.5)))
+        .collect();
+    group.bench_function("nearest_1024_points_near_surface/grid", |b| {
+        b.iter(|| near.iter().map(|q| index.nearest(q).1).sum::<f32>())
+    });
+    group.bench_function("nearest_1024_points_near_surface/kd_tree", |b| {
+        b.iter(|| near.iter().map(|q| index.nearest_in_tree(q).1).sum::<f32>())
+    });
 
     // Real-scene steps: the camera-facing half of the box seen from the
     // truth's camera (about 2,048 points with the spill ring below), and a

@@ -1,12 +1,17 @@
-//! The model's surface with a kd-tree, and rigid poses: shared by
-//! verification ([`crate::search`]), scoring ([`crate::scoring`]) and ICP
-//! ([`crate::refine`]).
+//! The model's surface with exact nearest-point look-ups, and rigid poses:
+//! shared by verification ([`crate::search`]), scoring ([`crate::scoring`])
+//! and ICP ([`crate::refine`]). An estimate asks for ~30,000 nearest model
+//! points, nearly all near the surface: a grid of cells answers those
+//! (ICP of 1,024 points × 20 iterations 2.8× faster than through the
+//! kd-tree alone on the YCB models, with the same poses bit for bit), the
+//! kd-tree the rest.
 
 use std::num::NonZero;
 
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
 
 use crate::Point3;
 
@@ -18,10 +23,12 @@ use crate::Point3;
 /// Nearest neighbours are exact whatever the leaf size.
 type ModelTree = ImmutableKdTree<f32, u32, 3, 8>;
 
-/// The model's points and normals with a kd-tree over the points (model
-/// frame, metres). Immutable, so many threads may query it at once.
+/// The model's points and normals with a kd-tree and grids of cells over
+/// the points (model frame, metres), built in 15–30 ms for 4,096 points.
+/// Immutable, so many threads may query it at once.
 pub struct ModelIndex {
     tree: ModelTree,
+    cells: CellIndex,
     points: Vec<Point3>,
     normals: Vec<Point3>,
 }
@@ -51,8 +58,10 @@ impl ModelIndex {
     pub fn new(points: Vec<Point3>, normals: Vec<Point3>) -> Self {
         assert_eq!(points.len(), normals.len(), "one normal per point");
         let tree = ModelTree::new_from_slice(&points);
+        let cells = CellIndex::new(&points, mean_spacing(&tree, &points), &tree);
         Self {
             tree,
+            cells,
             points,
             normals,
         }
@@ -76,8 +85,32 @@ impl ModelIndex {
         &self.normals
     }
 
-    /// Index and squared distance of the model point nearest to `p` (model frame).
+    /// Index and squared distance of the model point nearest to `p` (model
+    /// frame). Exact: through the grid of cells for points near the model
+    /// (ICP, scoring and verification ask almost only for those), through the
+    /// kd-tree for points farther out.
     pub fn nearest(&self, p: &[f32; 3]) -> (usize, f32) {
+        match self.cells.nearest(p, f64::INFINITY, &self.points) {
+            Lookup::Found(i, squared) => (i, squared),
+            Lookup::Beyond | Lookup::Unknown => self.nearest_in_tree(p),
+        }
+    }
+
+    /// [`nearest`](Self::nearest) when that point lies within `max_distance`
+    /// metres of `p` (`√squared ≤ max_distance`, in f64), None otherwise. Fast
+    /// for points far from the model too: ICP, scoring and alignment ignore
+    /// or truncate pairs beyond a distance, so they need not be found.
+    pub fn nearest_within(&self, p: &[f32; 3], max_distance: f64) -> Option<(usize, f32)> {
+        let (i, squared) = match self.cells.nearest(p, max_distance, &self.points) {
+            Lookup::Found(i, squared) => (i, squared),
+            Lookup::Beyond => return None,
+            Lookup::Unknown => self.nearest_in_tree(p),
+        };
+        ((squared as f64).sqrt() <= max_distance).then_some((i, squared))
+    }
+
+    /// [`nearest`](Self::nearest) through the kd-tree alone.
+    pub fn nearest_in_tree(&self, p: &[f32; 3]) -> (usize, f32) {
         let nn = self.tree.nearest_one::<SquaredEuclidean>(p);
         (nn.item as usize, nn.distance)
     }
@@ -93,4 +126,393 @@ impl ModelIndex {
             .map(|nn| nn.item as usize)
             .collect()
     }
+}
+
+/// Cells of the coarse grid are this many mean point spacings wide: a point
+/// off the candidate lists' band finds its nearest model point within the
+/// 27 cells around it. Measured on the YCB models (ICP of 1,024 points × 20
+/// iterations, before the lists): 2 spacings 3.1 ms, 3–5 spacings 2.2–2.4 ms,
+/// the kd-tree alone 4.4 ms.
+const CELL_SPACINGS: f32 = 4.0;
+
+/// Cells farther than this many rings around a query's cell are not
+/// searched; the kd-tree answers such a query (far from the surface).
+const MAX_RING: i32 = 2;
+
+/// The grid reaches this fraction of the model's bounding-box diagonal
+/// beyond the box: ICP, scoring and alignment never look farther than 0.1
+/// diameters, so [`ModelIndex::nearest_within`] answers them all here.
+const MARGIN_DIAGONALS: f64 = 0.15;
+
+/// What the grid knows about a query's nearest model point.
+enum Lookup {
+    /// Its index and squared distance (exact).
+    Found(usize, f32),
+    /// It lies farther than the asked distance.
+    Beyond,
+    /// The grid cannot tell cheaply: ask the kd-tree.
+    Unknown,
+}
+
+/// Mean distance from a model point to its nearest other point, over an
+/// evenly spread sample of at most 256 points (metres; at least 1 µm).
+fn mean_spacing(tree: &ModelTree, points: &[Point3]) -> f32 {
+    let two = NonZero::new(2).expect("2 > 0");
+    let step = points.len().div_ceil(256).max(1);
+    let nearest: Vec<f32> = points
+        .iter()
+        .step_by(step)
+        .filter_map(|p| {
+            tree.nearest_n::<SquaredEuclidean>(p, two)
+                .get(1)
+                .map(|nn| nn.distance.sqrt())
+        })
+        .collect();
+    (nearest.iter().sum::<f32>() / nearest.len().max(1) as f32).max(1e-6)
+}
+
+/// The model's points binned into a uniform grid of cubes (one cell of
+/// margin around their bounding box), for exact nearest-neighbour queries
+/// near the surface: the cells in rings of growing size around the query's
+/// cell are searched until no point outside them can be nearer. Several
+/// times faster than the kd-tree there, and the same answer (ties aside).
+struct CellIndex {
+    /// Corner of cell (0, 0, 0), metres.
+    origin: [f32; 3],
+    /// Every model point lies farther than this from any point outside the
+    /// grid, metres.
+    margin: f64,
+    /// Per cell, a lower bound of the distance from any point in it to the
+    /// model, metres (0 for cells holding model points).
+    clearance: Vec<f32>,
+    /// Cell side, metres.
+    cell: f32,
+    dims: [i32; 3],
+    /// Cell `c`'s points are `points[starts[c]..starts[c + 1]]`.
+    starts: Vec<u32>,
+    /// The model's points sorted by cell, with their model index.
+    points: Vec<(Point3, u32)>,
+    /// A finer grid over the model's bounding box whose cells near the
+    /// surface list every model point that can be nearest to a point in
+    /// them: one short scan answers most of ICP's queries.
+    lists: CandidateLists,
+}
+
+/// Cells of [`CandidateLists`] are this many mean point spacings wide. ICP
+/// of 1,024 points × 20 iterations on the YCB models: 0.7 spacings 1.74 ms,
+/// 1.0 and 1.5 spacings 1.61 ms (the coarse grid alone 2.27 ms).
+const LIST_SPACINGS: f32 = 1.0;
+
+/// Cells of [`CandidateLists`] whose centre lies within this many cell sides
+/// of the model get a list (the others hold none).
+const LIST_BAND_CELLS: f64 = 2.0;
+
+/// Per cell of a grid over the model's bounding box, the model points that
+/// can be nearest to some point in the cell: those within `r + 2h` of its
+/// centre, where `r` is the distance from the centre to its nearest model
+/// point and `h` half the cell's diagonal (a point `q` of the cell has a
+/// model point within `r + h`, so its nearest lies within `r + 2h` of the
+/// centre). Cells farther than [`LIST_BAND_CELLS`] from the model hold none.
+struct CandidateLists {
+    origin: [f32; 3],
+    cell: f32,
+    dims: [i32; 3],
+    /// Cell `c`'s list is `items[starts[c]..starts[c + 1]]` (empty: none).
+    starts: Vec<u32>,
+    items: Vec<u32>,
+}
+
+impl CandidateLists {
+    fn new(points: &[Point3], lo: [f32; 3], hi: [f32; 3], cell: f32, tree: &ModelTree) -> Self {
+        // At most ~1 M cells, whatever the spacing (a degenerate model).
+        let volume: f64 = (0..3)
+            .map(|a| (hi[a] - lo[a]) as f64 + cell as f64)
+            .product();
+        let cell = cell.max((volume / 1e6).cbrt() as f32).max(1e-6);
+        let dims: [i32; 3] = std::array::from_fn(|a| ((hi[a] - lo[a]) / cell).floor() as i32 + 1);
+        let count = dims.iter().map(|&d| d as usize).product::<usize>();
+        let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
+        let band = LIST_BAND_CELLS * cell as f64;
+        // Cells within `band` of some model point: those in the cube of
+        // cells `reach` around its cell (the rest need no look-up).
+        let mut near = vec![false; count];
+        let reach = band.div_euclid(cell as f64) as i32 + 1;
+        for p in points {
+            let g: [i32; 3] =
+                std::array::from_fn(|a| (((p[a] - lo[a]) / cell) as i32).min(dims[a] - 1));
+            for x in (g[0] - reach).max(0)..=(g[0] + reach).min(dims[0] - 1) {
+                for y in (g[1] - reach).max(0)..=(g[1] + reach).min(dims[1] - 1) {
+                    for z in (g[2] - reach).max(0)..=(g[2] + reach).min(dims[2] - 1) {
+                        near[((x * dims[1] + y) * dims[2] + z) as usize] = true;
+                    }
+                }
+            }
+        }
+        let lists: Vec<Vec<u32>> = (0..count)
+            .into_par_iter()
+            .map(|c| {
+                if !near[c] {
+                    return Vec::new();
+                }
+                let g = [
+                    c as i32 / (dims[1] * dims[2]),
+                    (c as i32 / dims[2]) % dims[1],
+                    c as i32 % dims[2],
+                ];
+                let centre: [f32; 3] = std::array::from_fn(|a| lo[a] + (g[a] as f32 + 0.5) * cell);
+                let r = (tree.nearest_one::<SquaredEuclidean>(&centre).distance as f64).sqrt();
+                if r > band {
+                    return Vec::new();
+                }
+                // Slack for rounding: a few more points, never one fewer.
+                let reach = (r + 2.0 * half_diagonal) * (1.0 + 1e-5) + 1e-6 * cell as f64;
+                let mut items: Vec<u32> = tree
+                    .within_unsorted::<SquaredEuclidean>(&centre, (reach * reach) as f32)
+                    .into_iter()
+                    .map(|nn| nn.item)
+                    .collect();
+                items.sort_unstable();
+                items
+            })
+            .collect();
+        let mut starts = Vec::with_capacity(count + 1);
+        starts.push(0u32);
+        let mut items = Vec::with_capacity(lists.iter().map(Vec::len).sum());
+        for list in lists {
+            items.extend(list);
+            starts.push(items.len() as u32);
+        }
+        Self {
+            origin: lo,
+            cell,
+            dims,
+            starts,
+            items,
+        }
+    }
+
+    /// The list of `p`'s cell: empty outside the box or far from the model.
+    #[allow(clippy::needless_range_loop)] // axes a = x, y, z of three arrays
+    fn of(&self, p: &[f32; 3]) -> &[u32] {
+        let mut c = 0usize;
+        for a in 0..3 {
+            let v = (p[a] - self.origin[a]) / self.cell;
+            // `v as i32` rounds towards zero: the floor for v ≥ 0.
+            if !(v >= 0.0 && v < self.dims[a] as f32) {
+                return &[];
+            }
+            c = c * self.dims[a] as usize + (v as i32).min(self.dims[a] - 1) as usize;
+        }
+        &self.items[self.starts[c] as usize..self.starts[c + 1] as usize]
+    }
+}
+
+impl CellIndex {
+    fn new(points: &[Point3], spacing: f32, tree: &ModelTree) -> Self {
+        let cell = CELL_SPACINGS * spacing;
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        for p in points {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+        }
+        if points.is_empty() {
+            (lo, hi) = ([0.0; 3], [0.0; 3]);
+        }
+        let diagonal = (0..3)
+            .map(|a| ((hi[a] - lo[a]) as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let margin = MARGIN_DIAGONALS * diagonal;
+        // At most ~1 M cells, whatever the spacing (a degenerate model).
+        let volume: f64 = (0..3)
+            .map(|a| (hi[a] - lo[a]) as f64 + 2.0 * margin)
+            .product();
+        let cell = cell.max((volume / 1e6).cbrt() as f32).max(1e-6);
+        let origin = lo.map(|v| v - margin as f32);
+        let dims: [i32; 3] = std::array::from_fn(|a| {
+            ((hi[a] - origin[a]) as f64 + margin).div_euclid(cell as f64) as i32 + 1
+        });
+        let mut index = Self {
+            lists: CandidateLists::new(points, lo, hi, LIST_SPACINGS * spacing, tree),
+            origin,
+            margin: margin * (1.0 - 1e-6) - 1e-9,
+            clearance: Vec::new(),
+            cell,
+            dims,
+            starts: Vec::new(),
+            points: Vec::new(),
+        };
+        let count = dims.iter().map(|&d| d as usize).product::<usize>();
+        let cell_of: Vec<usize> = points
+            .iter()
+            .map(|p| {
+                let g = index
+                    .coordinates(p)
+                    .expect("model points lie inside the grid");
+                index.flat(g)
+            })
+            .collect();
+        let mut starts = vec![0u32; count + 1];
+        for &c in &cell_of {
+            starts[c + 1] += 1;
+        }
+        for c in 0..count {
+            starts[c + 1] += starts[c];
+        }
+        let mut next = starts.clone();
+        let mut sorted = vec![([0.0f32; 3], 0u32); points.len()];
+        for (i, (p, &c)) in points.iter().zip(&cell_of).enumerate() {
+            sorted[next[c] as usize] = (*p, i as u32);
+            next[c] += 1;
+        }
+        // From the cell's centre, minus half its diagonal (and some slack
+        // for rounding), to the nearest model point.
+        let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
+        index.clearance = (0..count)
+            .into_par_iter()
+            .map(|c| {
+                if starts[c + 1] > starts[c] || points.is_empty() {
+                    return 0.0;
+                }
+                let (x, y, z) = (
+                    c as i32 / (dims[1] * dims[2]),
+                    (c as i32 / dims[2]) % dims[1],
+                    c as i32 % dims[2],
+                );
+                let centre: [f32; 3] =
+                    std::array::from_fn(|a| origin[a] + ([x, y, z][a] as f32 + 0.5) * cell);
+                let nearest =
+                    (tree.nearest_one::<SquaredEuclidean>(&centre).distance as f64).sqrt();
+                ((nearest - half_diagonal) * (1.0 - 1e-5) - 1e-6 * cell as f64).max(0.0) as f32
+            })
+            .collect();
+        index.starts = starts;
+        index.points = sorted;
+        index
+    }
+
+    /// The cell holding `p`, or None outside the grid.
+    fn coordinates(&self, p: &[f32; 3]) -> Option<[i32; 3]> {
+        let mut g = [0i32; 3];
+        for a in 0..3 {
+            let v = (p[a] - self.origin[a]) / self.cell;
+            // `v as i32` rounds towards zero: the floor for v ≥ 0.
+            if !(v >= 0.0 && v < self.dims[a] as f32) {
+                return None;
+            }
+            g[a] = (v as i32).min(self.dims[a] - 1);
+        }
+        Some(g)
+    }
+
+    fn flat(&self, g: [i32; 3]) -> usize {
+        ((g[0] * self.dims[1] + g[1]) * self.dims[2] + g[2]) as usize
+    }
+
+    /// The nearest of the `model`'s points to `p` and its squared distance,
+    /// from `p`'s candidate list, or when it lies within [`MAX_RING`] rings of cells; [`Lookup::Beyond`] when every model
+    /// point is surely farther than `max_distance` metres. Ties go to the
+    /// lower model index.
+    fn nearest(&self, p: &[f32; 3], max_distance: f64, model: &[Point3]) -> Lookup {
+        let Some(g) = self.coordinates(p) else {
+            return if max_distance < self.margin {
+                Lookup::Beyond
+            } else {
+                Lookup::Unknown
+            };
+        };
+        if self.clearance[self.flat(g)] as f64 > max_distance {
+            return Lookup::Beyond;
+        }
+        let list = self.lists.of(p);
+        if !list.is_empty() {
+            let mut best = (f32::INFINITY, u32::MAX);
+            for &item in list {
+                let d = squared(p, &model[item as usize]);
+                if d < best.0 {
+                    best = (d, item); // ascending items: ties keep the lower
+                }
+            }
+            return Lookup::Found(best.1 as usize, best.0);
+        }
+        // Distances from `p` to its cell's lower and upper walls, per axis:
+        // a cell `k` cells away along an axis is at least `(k − 1)` cells
+        // plus that wall away, and is skipped when farther than the nearest
+        // point so far (or than `max_distance`: such a point is not wanted).
+        let lower: [f32; 3] =
+            std::array::from_fn(|a| p[a] - (self.origin[a] + g[a] as f32 * self.cell));
+        let upper: [f32; 3] = std::array::from_fn(|a| self.cell - lower[a]);
+        let gap = |a: usize, k: i32| match k {
+            0 => 0.0,
+            k if k < 0 => lower[a] + (-k - 1) as f32 * self.cell,
+            k => upper[a] + (k - 1) as f32 * self.cell,
+        };
+        let wanted = (max_distance * max_distance).min(f32::MAX as f64) as f32;
+        let mut best = (f32::INFINITY, u32::MAX);
+        for ring in 0..=MAX_RING {
+            let lo: [i32; 3] = std::array::from_fn(|a| (g[a] - ring).max(0));
+            let hi: [i32; 3] = std::array::from_fn(|a| (g[a] + ring).min(self.dims[a] - 1));
+            for x in lo[0]..=hi[0] {
+                let gx = gap(0, x - g[0]).powi(2);
+                for y in lo[1]..=hi[1] {
+                    let gxy = gx + gap(1, y - g[1]).powi(2);
+                    if gxy > best.0.min(wanted) {
+                        continue;
+                    }
+                    let inner_xy = (x - g[0]).abs() < ring && (y - g[1]).abs() < ring;
+                    let mut z = lo[2];
+                    while z <= hi[2] {
+                        if inner_xy && (z - g[2]).abs() < ring {
+                            z = g[2] + ring; // skip the rings already searched
+                            continue;
+                        }
+                        if gxy + gap(2, z - g[2]).powi(2) <= best.0.min(wanted) {
+                            let c = self.flat([x, y, z]);
+                            let (a, b) = (self.starts[c] as usize, self.starts[c + 1] as usize);
+                            for &(q, item) in &self.points[a..b] {
+                                let d = squared(p, &q);
+                                if d < best.0 || (d == best.0 && item < best.1) {
+                                    best = (d, item);
+                                }
+                            }
+                        }
+                        z += 1;
+                    }
+                }
+            }
+            // Any point not yet seen lies beyond the searched cube's walls
+            // (or beyond the grid, which holds every model point).
+            let mut clearance = f32::INFINITY;
+            for (a, &ga) in g.iter().enumerate() {
+                if ga - ring > 0 {
+                    clearance = clearance.min(gap(a, -ring - 1));
+                }
+                if ga + ring < self.dims[a] - 1 {
+                    clearance = clearance.min(gap(a, ring + 1));
+                }
+            }
+            if best.0 <= clearance * clearance {
+                // The nearest point, unless a cell was skipped for lying
+                // beyond `max_distance`: then so does the nearest point, and
+                // this one is farther still (the caller checks).
+                return Lookup::Found(best.1 as usize, best.0);
+            }
+            if clearance as f64 > max_distance {
+                return Lookup::Beyond; // nothing unseen is near enough, nor the nearest seen
+            }
+        }
+        Lookup::Unknown
+    }
+}
+
+/// Squared distance, summed in kiddo's order (x, y, z): the same f32 value.
+fn squared(a: &[f32; 3], b: &[f32; 3]) -> f32 {
+    let mut d = 0.0f32;
+    for k in 0..3 {
+        d += (a[k] - b[k]) * (a[k] - b[k]);
+    }
+    d
 }

@@ -74,9 +74,8 @@ impl ModelIndex {
             for p in cloud {
                 let source = to_model.apply(p);
                 let query = [source.x as f32, source.y as f32, source.z as f32];
-                let (i, sq) = self.nearest(&query);
-                let d = (sq as f64).sqrt();
-                if d <= max_distance {
+                if let Some((i, sq)) = self.nearest_within(&query, max_distance) {
+                    let d = (sq as f64).sqrt();
                     let q = self.points()[i];
                     let n = self.normals()[i];
                     pairs.push((
@@ -264,6 +263,43 @@ mod tests {
                 .fold(f32::INFINITY, f32::min);
             assert!((sq - brute).abs() < 1e-9);
             assert_eq!(index.nearest_k(&q, 3)[0], i);
+        }
+    }
+
+    #[test]
+    fn the_grid_of_cells_finds_the_kd_trees_nearest_point_near_and_far() {
+        let model = bracket();
+        let index = ModelIndex::new(model.points.clone(), model.normals.clone());
+        let mut state = 7u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        };
+        // Near the surface (what ICP asks), and out to well beyond the model.
+        for reach in [0.002f32, 0.01, 0.05, 0.3] {
+            for k in 0..2000 {
+                let p = model.points[(k * 7) % model.points.len()];
+                let q = [
+                    p[0] + reach * uniform(),
+                    p[1] + reach * uniform(),
+                    p[2] + reach * uniform(),
+                ];
+                let (i, d) = index.nearest(&q);
+                let (j, e) = index.nearest_in_tree(&q);
+                assert_eq!(d, e, "same squared distance at {q:?}");
+                assert!(i == j || model.points[i] == model.points[j], "{i} vs {j}");
+                for max_distance in [0.001, 0.005, 0.02, 0.1] {
+                    let within = index.nearest_within(&q, max_distance);
+                    let expected = ((e as f64).sqrt() <= max_distance).then_some(e);
+                    assert_eq!(
+                        within.map(|w| w.1),
+                        expected,
+                        "within {max_distance} m of {q:?}"
+                    );
+                }
+            }
         }
     }
 }

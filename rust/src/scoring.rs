@@ -156,8 +156,8 @@ pub fn align_translations(
                 let (mut shift, mut paired) = (Vector3::zeros(), 0usize);
                 for p in observed {
                     let m = to_model.apply(p);
-                    let (i, sq) = index.nearest(&[m.x as f32, m.y as f32, m.z as f32]);
-                    if (sq as f64).sqrt() <= max_distance {
+                    let m32 = [m.x as f32, m.y as f32, m.z as f32];
+                    if let Some((i, _)) = index.nearest_within(&m32, max_distance) {
                         let q = index.points()[i];
                         shift += Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64) - m;
                         paired += 1;
@@ -200,11 +200,18 @@ fn score_pose(
     let (mut total, mut inliers) = (0.0f64, 0usize);
     for p in observed {
         let m = to_model.apply(p);
-        let d = (index.nearest(&[m.x as f32, m.y as f32, m.z as f32]).1 as f64).sqrt();
-        if d <= settings.inlier_distance {
-            inliers += 1;
+        // Beyond the inlier distance a pair counts as that distance: its
+        // nearest model point need not be found.
+        match index.nearest_within(
+            &[m.x as f32, m.y as f32, m.z as f32],
+            settings.inlier_distance,
+        ) {
+            Some((_, sq)) => {
+                inliers += 1;
+                total += (sq as f64).sqrt();
+            }
+            None => total += settings.inlier_distance,
         }
-        total += d.min(settings.inlier_distance);
     }
     let (mut facing, mut on_rays, mut violations) = (0usize, 0usize, 0usize);
     let stride = settings.model_stride.max(1);
