@@ -116,12 +116,10 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // order does not matter: a component's root is its lowest index.
     let mut pairs: Vec<(u32, u32)> = Vec::with_capacity(32 * n);
     let mut counts = vec![0.0f64; n];
-    CellGrid::new(cloud, radius, false).for_each_pair(|i, j| {
-        if squared_distance(&cloud[i], &cloud[j]) <= radius * radius {
-            pairs.push((i as u32, j as u32));
-            counts[i] += 1.0;
-            counts[j] += 1.0;
-        }
+    CellGrid::new(cloud, radius, false).for_each_pair_within(radius, None, |i, j| {
+        pairs.push((i as u32, j as u32));
+        counts[i] += 1.0;
+        counts[j] += 1.0;
     });
 
     // 1. Outliers: points with far fewer neighbours than is typical of the
@@ -289,9 +287,12 @@ fn in_shadow(
         .iter()
         .map(|&i| [cloud[i][0] / cloud[i][2], cloud[i][1] / cloud[i][2], 0.0])
         .collect();
-    CellGrid::new(&rays, reach.max(1e-9), true).for_each_pair(|a, b| {
-        let (i, j) = (front[a], front[b]);
-        if root_of[j] != root_of[i] && squared_distance(&rays[a], &rays[b]) <= reach * reach {
+    let roots: Vec<usize> = front.iter().map(|&i| root_of[i]).collect();
+    CellGrid::new(&rays, reach.max(1e-9), true).for_each_pair_within(
+        reach,
+        Some(&roots),
+        |a, b| {
+            let (i, j) = (front[a], front[b]);
             let behind = (cloud[i][2] - cloud[j][2]) as f64;
             if behind > gap {
                 if shadowed[i] == NONE {
@@ -300,8 +301,8 @@ fn in_shadow(
             } else if -behind > gap && shadowed[j] == NONE {
                 shadowed[j] = root_of[i];
             }
-        }
-    });
+        },
+    );
     shadowed
 }
 
@@ -334,10 +335,12 @@ struct CellGrid {
     flat: bool,
     /// Point indices sorted by cube.
     order: Vec<u32>,
+    /// The points in that order (contiguous per cube).
+    sorted: Vec<Point3>,
     /// Occupied cubes in sorted order, with their range of `order`.
     cells: Vec<([i32; 3], u32, u32)>,
-    /// Cube → range of `order`.
-    ranges: HashMap<[i32; 3], (u32, u32), BuildHasherDefault<CellHasher>>,
+    /// Cube → its place in `cells`.
+    ranges: HashMap<[i32; 3], u32, BuildHasherDefault<CellHasher>>,
 }
 
 /// A multiplicative hash for small integer keys: the default SipHash made
@@ -379,9 +382,14 @@ impl CellGrid {
             cells.push((key, start as u32, end as u32));
             start = end;
         }
-        let ranges = cells.iter().map(|&(key, a, b)| (key, (a, b))).collect();
+        let ranges = cells
+            .iter()
+            .enumerate()
+            .map(|(k, &(key, _, _))| (key, k as u32))
+            .collect();
         Self {
             flat,
+            sorted: order.iter().map(|&i| points[i as usize]).collect(),
             order,
             cells,
             ranges,
@@ -389,34 +397,73 @@ impl CellGrid {
     }
 
     /// Calls `visit(i, j)` once for every unordered pair of distinct points
-    /// in the same or neighbouring cubes, cube by cube in a fixed order: the
+    /// at most `within` apart (no more than a cube's side) in the same or
+    /// neighbouring cubes, cube by cube in a fixed order: the
     /// pairs within a cube, then those with each neighbouring cube that
-    /// sorts after it (so no pair is seen twice).
-    fn for_each_pair(&self, mut visit: impl FnMut(usize, usize)) {
+    /// sorts after it (so no pair is seen twice). With `labels` (one per
+    /// point), only pairs of differently labelled points, and cubes whose
+    /// points all share one label are not paired with each other: most of
+    /// a cloud is one component, and its pairs are skipped wholesale.
+    fn for_each_pair_within(
+        &self,
+        within: f32,
+        labels: Option<&[usize]>,
+        mut visit: impl FnMut(usize, usize),
+    ) {
+        let limit = within * within;
+        /// A cube whose points carry different labels.
+        const MIXED: usize = usize::MAX;
+        let label_of = |range: (u32, u32)| -> Option<usize> {
+            let labels = labels?;
+            let mine = &self.order[range.0 as usize..range.1 as usize];
+            let first = labels[mine[0] as usize];
+            Some(if mine.iter().all(|&i| labels[i as usize] == first) {
+                first
+            } else {
+                MIXED
+            })
+        };
+        let cube_labels: Vec<Option<usize>> = self
+            .cells
+            .iter()
+            .map(|&(_, a, b)| label_of((a, b)))
+            .collect();
+        let differ = |i: u32, j: u32| labels.is_none_or(|l| l[i as usize] != l[j as usize]);
+        let (order, sorted) = (&self.order, &self.sorted);
         let depth = if self.flat { 0 } else { 1 };
         let mut after: Vec<(u32, u32)> = Vec::with_capacity(13);
-        for &(c, a, b) in &self.cells {
+        for (&(c, a, b), &label) in self.cells.iter().zip(&cube_labels) {
+            let pure = label.is_some_and(|l| l != MIXED);
             after.clear();
             for dx in -1..=1 {
                 for dy in -1..=1 {
                     for dz in -depth..=depth {
                         let key = [c[0] + dx, c[1] + dy, c[2] + dz];
                         if key > c {
-                            if let Some(&range) = self.ranges.get(&key) {
-                                after.push(range);
+                            if let Some(&k) = self.ranges.get(&key) {
+                                let (_, ra, rb) = self.cells[k as usize];
+                                if !pure || cube_labels[k as usize] != label {
+                                    after.push((ra, rb));
+                                }
                             }
                         }
                     }
                 }
             }
-            let mine = &self.order[a as usize..b as usize];
-            for (x, &i) in mine.iter().enumerate() {
-                for &j in &mine[x + 1..] {
-                    visit(i as usize, j as usize);
+            for x in a as usize..b as usize {
+                let (i, p) = (order[x], &sorted[x]);
+                if !pure {
+                    for y in x + 1..b as usize {
+                        if squared_distance(p, &sorted[y]) <= limit && differ(i, order[y]) {
+                            visit(i as usize, order[y] as usize);
+                        }
+                    }
                 }
                 for &(ra, rb) in &after {
-                    for &j in &self.order[ra as usize..rb as usize] {
-                        visit(i as usize, j as usize);
+                    for y in ra as usize..rb as usize {
+                        if squared_distance(p, &sorted[y]) <= limit && differ(i, order[y]) {
+                            visit(i as usize, order[y] as usize);
+                        }
                     }
                 }
             }
