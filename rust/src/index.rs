@@ -185,6 +185,10 @@ struct CellIndex {
     /// Per cell, a lower bound of the distance from any point in it to the
     /// model, metres (0 for cells holding model points).
     clearance: Vec<f32>,
+    /// Per cell, the model point nearest to its centre: a first guess that
+    /// bounds the search (within half a cell diagonal of the true distance
+    /// plus the centre's).
+    anchor: Vec<u32>,
     /// Cell side, metres.
     cell: f32,
     dims: [i32; 3],
@@ -340,6 +344,7 @@ impl CellIndex {
             origin,
             margin: margin * (1.0 - 1e-6) - 1e-9,
             clearance: Vec::new(),
+            anchor: Vec::new(),
             cell,
             dims,
             starts: Vec::new(),
@@ -371,11 +376,11 @@ impl CellIndex {
         // From the cell's centre, minus half its diagonal (and some slack
         // for rounding), to the nearest model point.
         let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
-        index.clearance = (0..count)
+        (index.clearance, index.anchor) = (0..count)
             .into_par_iter()
             .map(|c| {
-                if starts[c + 1] > starts[c] || points.is_empty() {
-                    return 0.0;
+                if points.is_empty() {
+                    return (0.0, 0);
                 }
                 let (x, y, z) = (
                     c as i32 / (dims[1] * dims[2]),
@@ -384,11 +389,15 @@ impl CellIndex {
                 );
                 let centre: [f32; 3] =
                     std::array::from_fn(|a| origin[a] + ([x, y, z][a] as f32 + 0.5) * cell);
-                let nearest =
-                    (tree.nearest_one::<SquaredEuclidean>(&centre).distance as f64).sqrt();
-                ((nearest - half_diagonal) * (1.0 - 1e-5) - 1e-6 * cell as f64).max(0.0) as f32
+                let nn = tree.nearest_one::<SquaredEuclidean>(&centre);
+                if starts[c + 1] > starts[c] {
+                    return (0.0, nn.item);
+                }
+                let nearest = (nn.distance as f64).sqrt();
+                let clearance = (nearest - half_diagonal) * (1.0 - 1e-5) - 1e-6 * cell as f64;
+                (clearance.max(0.0) as f32, nn.item)
             })
-            .collect();
+            .unzip();
         index.starts = starts;
         index.points = sorted;
         index
@@ -451,7 +460,8 @@ impl CellIndex {
             k => upper[a] + (k - 1) as f32 * self.cell,
         };
         let wanted = (max_distance * max_distance).min(f32::MAX as f64) as f32;
-        let mut best = (f32::INFINITY, u32::MAX);
+        let anchor = self.anchor[self.flat(g)];
+        let mut best = (squared(p, &model[anchor as usize]), anchor);
         for ring in 0..=MAX_RING {
             let lo: [i32; 3] = std::array::from_fn(|a| (g[a] - ring).max(0));
             let hi: [i32; 3] = std::array::from_fn(|a| (g[a] + ring).min(self.dims[a] - 1));

@@ -3,6 +3,7 @@
 //! built once per codebook.
 
 use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
+use rayon::prelude::*;
 
 use crate::index::{ModelIndex, Pose};
 use crate::Point3;
@@ -10,6 +11,10 @@ use crate::Point3;
 /// ICP has converged when an update's rotation (radians) and translation
 /// (metres) together move less than this: 10 µm, far below depth noise.
 pub const CONVERGED: f64 = 1e-5;
+
+/// [`ModelIndex::refine_each`] runs this many starts or more in parallel
+/// (the second search's hypotheses).
+pub const PARALLEL_STARTS: usize = 6;
 
 /// One ICP correspondence, model frame: the moved cloud point, its nearest
 /// model point, that point's normal, and their distance (metres).
@@ -32,9 +37,10 @@ impl ModelIndex {
     /// [`refine`](Self::refine) from each of several `starts`: one result per
     /// start, in order. Refining a few distinct hypotheses and keeping the
     /// best fit resolves near-symmetric objects whose turned-over pose
-    /// verifies almost as well as the true one. Runs in the calling thread:
-    /// a few sub-millisecond ICPs gain nothing from a thread pool, and
-    /// waking one costs milliseconds on a busy CPU.
+    /// verifies almost as well as the true one. Runs in the calling thread
+    /// for fewer than [`PARALLEL_STARTS`] starts: a few sub-millisecond ICPs
+    /// gain nothing from a thread pool, and waking one can cost milliseconds
+    /// on a busy CPU. Each start's result is its own either way.
     pub fn refine_each(
         &self,
         cloud: &[Point3],
@@ -42,10 +48,12 @@ impl ModelIndex {
         max_iterations: usize,
         max_distance: f64,
     ) -> Vec<IcpResult> {
-        starts
-            .iter()
-            .map(|start| self.refine(cloud, *start, max_iterations, max_distance))
-            .collect()
+        let icp = |start: &Pose| self.refine(cloud, *start, max_iterations, max_distance);
+        if starts.len() >= PARALLEL_STARTS {
+            starts.par_iter().map(icp).collect()
+        } else {
+            starts.iter().map(icp).collect()
+        }
     }
 
     /// Point-to-plane ICP of an observed `cloud` (camera frame, metres) onto
@@ -223,7 +231,9 @@ mod tests {
                 [v.x as f32, v.y as f32, v.z as f32]
             })
             .collect();
-        let starts: Vec<Pose> = [0.05, 0.1, 2.5]
+        // Six starts: refined in parallel (PARALLEL_STARTS), as the second
+        // search does; the first three are checked for what they find.
+        let starts: Vec<Pose> = [0.05, 0.1, 2.5, 0.07, 0.3, 1.2]
             .iter()
             .map(|&a| {
                 let n = pose(Vector3::new(0.0, 1.0, 1.0), a, Vector3::zeros());
@@ -234,7 +244,7 @@ mod tests {
             })
             .collect();
         let each = index.refine_each(&cloud, &starts, 25, 0.05);
-        assert_eq!(each.len(), 3);
+        assert_eq!(each.len(), starts.len());
         for (start, out) in starts.iter().zip(&each) {
             let alone = index.refine(&cloud, *start, 25, 0.05);
             assert_eq!(

@@ -18,6 +18,7 @@
 //! Camera frame (OpenCV), metres.
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use crate::index::{ModelIndex, Pose};
 use crate::Point3;
@@ -147,31 +148,43 @@ pub fn align_translations(
     iterations: usize,
     max_distance: f64,
 ) -> Vec<Pose> {
-    poses
-        .iter()
-        .map(|start| {
-            let mut pose = *start;
-            for _ in 0..iterations {
-                let to_model = pose.inverse();
-                let (mut shift, mut paired) = (Vector3::zeros(), 0usize);
-                for p in observed {
-                    let m = to_model.apply(p);
-                    let m32 = [m.x as f32, m.y as f32, m.z as f32];
-                    if let Some((i, _)) = index.nearest_within(&m32, max_distance) {
-                        let q = index.points()[i];
-                        shift += Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64) - m;
-                        paired += 1;
-                    }
+    each_pose(poses, |start| {
+        let mut pose = *start;
+        for _ in 0..iterations {
+            let to_model = pose.inverse();
+            let (mut shift, mut paired) = (Vector3::zeros(), 0usize);
+            for p in observed {
+                let m = to_model.apply(p);
+                let m32 = [m.x as f32, m.y as f32, m.z as f32];
+                if let Some((i, _)) = index.nearest_within(&m32, max_distance) {
+                    let q = index.points()[i];
+                    shift += Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64) - m;
+                    paired += 1;
                 }
-                if paired == 0 {
-                    break;
-                }
-                // p = R·m + t should become R·q + t, so t moves by −R·(q − m).
-                pose.translation -= pose.rotation * (shift / paired as f64);
             }
-            pose
-        })
-        .collect()
+            if paired == 0 {
+                break;
+            }
+            // p = R·m + t should become R·q + t, so t moves by −R·(q − m).
+            pose.translation -= pose.rotation * (shift / paired as f64);
+        }
+        pose
+    })
+}
+
+/// Poses handled at once in parallel from this many on (the second search's
+/// 64–256 candidates: several milliseconds of work). Fewer finish within a
+/// millisecond, less than waking the thread pool can cost on a busy CPU.
+const PARALLEL_FROM: usize = 64;
+
+/// `f` of each pose, in order; in parallel for [`PARALLEL_FROM`] poses or
+/// more (each pose's result is its own, so the results are the same).
+fn each_pose<T: Send>(poses: &[Pose], f: impl Fn(&Pose) -> T + Sync + Send) -> Vec<T> {
+    if poses.len() >= PARALLEL_FROM {
+        poses.par_iter().with_min_len(16).map(f).collect()
+    } else {
+        poses.iter().map(f).collect()
+    }
 }
 
 /// Scores each pose (model → camera) against `observed` points and the
@@ -183,10 +196,9 @@ pub fn score_poses(
     poses: &[Pose],
     settings: &ScoreSettings,
 ) -> Vec<PoseScore> {
-    poses
-        .iter()
-        .map(|pose| score_pose(index, observed, grid, pose, settings))
-        .collect()
+    each_pose(poses, |pose| {
+        score_pose(index, observed, grid, pose, settings)
+    })
 }
 
 fn score_pose(
