@@ -588,18 +588,21 @@ mod tests {
 
     #[test]
     fn spill_onto_an_occluder_in_front_is_dropped_but_a_large_front_part_is_kept() {
-        // A 14 × 10 cm object at 0.7 m; its right edge is hidden by an
-        // occluder at 0.6 m, and the mask spilled onto a strip of it beside
-        // the edge in the image (3 columns, 4 % of the object's points).
+        // A 14 × 10 cm object (diameter taken as 0.2 m) at 0.7 m; its right
+        // edge is hidden by an occluder at 0.6 m, and the mask spilled onto a
+        // strip of it beside the edge in the image (3 columns, 4 % of the
+        // object's points). The same strip only 1.5 cm in front (less than
+        // `occluder_margin`, 0.1 diameters) is kept: it may be a steep face
+        // of the object that sparse sampling split off.
         let object = plane(0.7, 0.002, (0.0, 0.14), (0.0, 0.1), |_, _| false);
-        let edge = 0.14 / 0.7 * 0.6; // the object's edge ray, at the occluder's depth
-        for (columns, dropped) in [(3, true), (12, false)] {
+        for (columns, depth, dropped) in [(3, 0.6f32, true), (12, 0.6, false), (3, 0.685, false)] {
+            let edge = 0.14 / 0.7 * depth; // the object's edge ray, at the strip's depth
             let width = columns as f32 * 0.002;
             let strip = plane(
-                0.6,
+                depth,
                 0.002,
                 (edge, edge + width - 1e-4),
-                (0.0, 0.1 * 0.6 / 0.7),
+                (0.0, 0.1 * depth / 0.7),
                 |_, _| false,
             );
             let cloud: Vec<Point3> = object.iter().chain(&strip).copied().collect();
@@ -619,8 +622,9 @@ mod tests {
                     strip.len()
                 );
             } else {
-                // 12 columns: 17 % of the object's size, as large as a part of it in front of another.
-                assert_eq!(kept_strip, strip.len());
+                // 12 columns: 17 % of the object's size, as large as a part
+                // of it in front of another; 1.5 cm: within the margin.
+                assert_eq!(kept_strip, strip.len(), "{columns} columns at {depth} m");
             }
         }
     }
