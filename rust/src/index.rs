@@ -21,7 +21,7 @@ use crate::Point3;
 /// ICP on 1,024 points × 20 iterations took 25–30 % less time on the YCB
 /// models (e.g. 6.1 → 4.3 ms), 4 and 16 were slower, 128 twice as slow.
 /// Nearest neighbours are exact whatever the leaf size.
-type ModelTree = ImmutableKdTree<f32, u32, 3, 8>;
+pub(crate) type ModelTree = ImmutableKdTree<f32, u32, 3, 8>;
 
 /// The model's points and normals with a kd-tree and grids of cells over
 /// the points (model frame, metres), built in 15–30 ms for 4,096 points.
@@ -154,21 +154,28 @@ enum Lookup {
     Unknown,
 }
 
-/// Mean distance from a model point to its nearest other point, over an
-/// evenly spread sample of at most 256 points (metres; at least 1 µm).
+/// Mean distance from a model point to its nearest other point (metres; at
+/// least 1 µm), over [`sampled_spacings`].
 fn mean_spacing(tree: &ModelTree, points: &[Point3]) -> f32 {
+    let nearest = sampled_spacings(tree, points);
+    ((nearest.iter().sum::<f64>() / nearest.len().max(1) as f64) as f32).max(1e-6)
+}
+
+/// Distance (metres) from each of an evenly spread sample of at most 256 of
+/// `points` to its nearest other point, through `tree` (built on `points`):
+/// the point spacing of a model or of an observed cloud.
+pub(crate) fn sampled_spacings(tree: &ModelTree, points: &[Point3]) -> Vec<f64> {
     let two = NonZero::new(2).expect("2 > 0");
     let step = points.len().div_ceil(256).max(1);
-    let nearest: Vec<f32> = points
+    points
         .iter()
         .step_by(step)
         .filter_map(|p| {
             tree.nearest_n::<SquaredEuclidean>(p, two)
                 .get(1)
-                .map(|nn| nn.distance.sqrt())
+                .map(|nn| (nn.distance as f64).sqrt())
         })
-        .collect();
-    (nearest.iter().sum::<f32>() / nearest.len().max(1) as f32).max(1e-6)
+        .collect()
 }
 
 /// The model's points binned into a uniform grid of cubes (one cell of

@@ -18,10 +18,8 @@
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
-use std::num::NonZero;
 
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
-
+use crate::index::{sampled_spacings, ModelTree};
 use crate::Point3;
 
 /// No component (a point in nobody's shadow).
@@ -309,19 +307,7 @@ fn in_shadow(
 /// Median distance from a point to its nearest neighbour, over an evenly
 /// spread sample of at most 256 points (enough for a median).
 fn median_spacing(cloud: &[Point3]) -> f64 {
-    let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(cloud);
-    let two = NonZero::new(2).expect("2 > 0");
-    let step = cloud.len().div_ceil(256).max(1);
-    let nearest: Vec<f64> = cloud
-        .iter()
-        .step_by(step)
-        .filter_map(|p| {
-            tree.nearest_n::<SquaredEuclidean>(p, two)
-                .get(1)
-                .map(|nn| (nn.distance as f64).sqrt())
-        })
-        .collect();
-    median_of(&nearest)
+    median_of(&sampled_spacings(&ModelTree::new_from_slice(cloud), cloud))
 }
 
 fn squared_distance(a: &Point3, b: &Point3) -> f32 {
