@@ -178,11 +178,13 @@ pub(crate) fn sampled_spacings(tree: &ModelTree, points: &[Point3]) -> Vec<f64> 
         .collect()
 }
 
-/// The model's points binned into a uniform grid of cubes (one cell of
-/// margin around their bounding box), for exact nearest-neighbour queries
-/// near the surface: the cells in rings of growing size around the query's
-/// cell are searched until no point outside them can be nearer. Several
-/// times faster than the kd-tree there, and the same answer (ties aside).
+/// The model's points binned into a uniform grid of cubes (reaching
+/// [`MARGIN_DIAGONALS`] beyond their bounding box), for exact
+/// nearest-neighbour queries: a query near the surface scans its cell's
+/// [`CandidateLists`] entry; one farther out searches the cells in rings of
+/// growing size around its cell until no point outside them can be nearer;
+/// one farther than the caller's cut-off is turned away by the cell's
+/// clearance. The same answer as the kd-tree (ties aside), 2–3× sooner.
 struct CellIndex {
     /// Corner of cell (0, 0, 0), metres.
     origin: [f32; 3],
@@ -433,6 +435,9 @@ impl CellIndex {
     /// point is surely farther than `max_distance` metres. Ties go to the
     /// lower model index.
     fn nearest(&self, p: &[f32; 3], max_distance: f64, model: &[Point3]) -> Lookup {
+        if model.is_empty() {
+            return Lookup::Unknown;
+        }
         let Some(g) = self.coordinates(p) else {
             return if max_distance < self.margin {
                 Lookup::Beyond
