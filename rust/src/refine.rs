@@ -12,9 +12,9 @@ use crate::Point3;
 /// (metres) together move less than this: 10 µm, far below depth noise.
 pub const CONVERGED: f64 = 1e-5;
 
-/// [`ModelIndex::refine_each`] runs this many starts or more in parallel
-/// (the second search's hypotheses).
-pub const PARALLEL_STARTS: usize = 6;
+/// [`ModelIndex::refine_each`] runs this many starts or more in parallel:
+/// the second search's 5–8 new hypotheses, not the first search's 3.
+pub const PARALLEL_STARTS: usize = 4;
 
 /// One ICP correspondence, model frame: the moved cloud point, its nearest
 /// model point, that point's normal, and their distance (metres).
@@ -232,7 +232,7 @@ mod tests {
             })
             .collect();
         // Six starts: refined in parallel (PARALLEL_STARTS), as the second
-        // search does; the first three are checked for what they find.
+        // search's are; the first three are checked for what they find.
         let starts: Vec<Pose> = [0.05, 0.1, 2.5, 0.07, 0.3, 1.2]
             .iter()
             .map(|&a| {
