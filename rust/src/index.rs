@@ -225,14 +225,16 @@ const LIST_BAND_CELLS: f64 = 2.0;
 /// centre, where `r` is the distance from the centre to its nearest model
 /// point and `h` half the cell's diagonal (a point `q` of the cell has a
 /// model point within `r + h`, so its nearest lies within `r + 2h` of the
-/// centre). Cells farther than [`LIST_BAND_CELLS`] from the model hold none.
+/// centre). Cells farther than [`LIST_BAND_CELLS`] from the model hold none,
+/// and so does every cell of a model of more than 65,536 points (lists of
+/// 16-bit indices; the index of a YCB model of 4,096 points holds 0.8–1.5 MB).
 struct CandidateLists {
     origin: [f32; 3],
     cell: f32,
     dims: [i32; 3],
     /// Cell `c`'s list is `items[starts[c]..starts[c + 1]]` (empty: none).
     starts: Vec<u32>,
-    items: Vec<u32>,
+    items: Vec<u16>,
 }
 
 impl CandidateLists {
@@ -250,7 +252,8 @@ impl CandidateLists {
         // cells `reach` around its cell (the rest need no look-up).
         let mut near = vec![false; count];
         let reach = band.div_euclid(cell as f64) as i32 + 1;
-        for p in points {
+        let short = points.len() <= 1 << 16; // indices fit 16 bits
+        for p in points.iter().filter(|_| short) {
             let g: [i32; 3] =
                 std::array::from_fn(|a| (((p[a] - lo[a]) / cell) as i32).min(dims[a] - 1));
             for x in (g[0] - reach).max(0)..=(g[0] + reach).min(dims[0] - 1) {
@@ -261,7 +264,7 @@ impl CandidateLists {
                 }
             }
         }
-        let lists: Vec<Vec<u32>> = (0..count)
+        let lists: Vec<Vec<u16>> = (0..count)
             .into_par_iter()
             .map(|c| {
                 if !near[c] {
@@ -279,10 +282,10 @@ impl CandidateLists {
                 }
                 // Slack for rounding: a few more points, never one fewer.
                 let reach = (r + 2.0 * half_diagonal) * (1.0 + 1e-5) + 1e-6 * cell as f64;
-                let mut items: Vec<u32> = tree
+                let mut items: Vec<u16> = tree
                     .within_unsorted::<SquaredEuclidean>(&centre, (reach * reach) as f32)
                     .into_iter()
-                    .map(|nn| nn.item)
+                    .map(|nn| nn.item as u16) // `short`: every index fits
                     .collect();
                 items.sort_unstable();
                 items
@@ -306,7 +309,7 @@ impl CandidateLists {
 
     /// The list of `p`'s cell: empty outside the box or far from the model.
     #[allow(clippy::needless_range_loop)] // axes a = x, y, z of three arrays
-    fn of(&self, p: &[f32; 3]) -> &[u32] {
+    fn of(&self, p: &[f32; 3]) -> &[u16] {
         let mut c = 0usize;
         for a in 0..3 {
             let v = (p[a] - self.origin[a]) / self.cell;
@@ -454,7 +457,7 @@ impl CellIndex {
             for &item in list {
                 let d = squared(p, &model[item as usize]);
                 if d < best.0 {
-                    best = (d, item); // ascending items: ties keep the lower
+                    best = (d, item as u32); // ascending items: ties keep the lower
                 }
             }
             return Lookup::Found(best.1 as usize, best.0);
