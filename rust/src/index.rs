@@ -186,8 +186,7 @@ pub(crate) fn sampled_spacings(tree: &ModelTree, points: &[Point3]) -> Vec<f64> 
 /// one farther than the caller's cut-off is turned away by the cell's
 /// clearance. The same answer as the kd-tree (ties aside), 2–3× sooner.
 struct CellIndex {
-    /// Corner of cell (0, 0, 0), metres.
-    origin: [f32; 3],
+    grid: Grid,
     /// Every model point lies farther than this from any point outside the
     /// grid, metres.
     margin: f64,
@@ -198,9 +197,6 @@ struct CellIndex {
     /// bounds the search (within half a cell diagonal of the true distance
     /// plus the centre's).
     anchor: Vec<u32>,
-    /// Cell side, metres.
-    cell: f32,
-    dims: [i32; 3],
     /// Cell `c`'s points are `points[starts[c]..starts[c + 1]]`.
     starts: Vec<u32>,
     /// The model's points sorted by cell, with their model index.
@@ -220,6 +216,65 @@ const LIST_SPACINGS: f32 = 1.0;
 /// of the model get a list (the others hold none).
 const LIST_BAND_CELLS: f64 = 2.0;
 
+/// A uniform grid of cubes over the box `[lo − margin, hi + margin]`
+/// (metres): which cell holds a point, and where a cell's centre lies. At
+/// most ~1 M cells, whatever the requested side (a degenerate model).
+#[derive(Clone, Copy)]
+struct Grid {
+    /// Corner of cell (0, 0, 0), metres.
+    origin: [f32; 3],
+    /// Cell side, metres.
+    cell: f32,
+    dims: [i32; 3],
+}
+
+impl Grid {
+    fn new(lo: [f32; 3], hi: [f32; 3], cell: f32, margin: f64) -> Self {
+        let volume: f64 = (0..3)
+            .map(|a| (hi[a] - lo[a]) as f64 + 2.0 * margin + cell as f64)
+            .product();
+        let cell = cell.max((volume / 1e6).cbrt() as f32).max(1e-6);
+        let origin = lo.map(|v| v - margin as f32);
+        let dims = std::array::from_fn(|a| {
+            ((hi[a] - origin[a]) as f64 + margin).div_euclid(cell as f64) as i32 + 1
+        });
+        Self { origin, cell, dims }
+    }
+
+    fn count(&self) -> usize {
+        self.dims.iter().map(|&d| d as usize).product()
+    }
+
+    /// The cell holding `p`, or None outside the grid.
+    fn coordinates(&self, p: &[f32; 3]) -> Option<[i32; 3]> {
+        let mut g = [0i32; 3];
+        for (a, ga) in g.iter_mut().enumerate() {
+            let v = (p[a] - self.origin[a]) / self.cell;
+            // `v as i32` rounds towards zero: the floor for v ≥ 0.
+            if !(v >= 0.0 && v < self.dims[a] as f32) {
+                return None;
+            }
+            *ga = (v as i32).min(self.dims[a] - 1);
+        }
+        Some(g)
+    }
+
+    fn flat(&self, g: [i32; 3]) -> usize {
+        ((g[0] * self.dims[1] + g[1]) * self.dims[2] + g[2]) as usize
+    }
+
+    /// The centre of cell `c` (a [`flat`](Self::flat) index), metres.
+    fn centre(&self, c: usize) -> [f32; 3] {
+        let d = self.dims;
+        let g = [
+            c as i32 / (d[1] * d[2]),
+            (c as i32 / d[2]) % d[1],
+            c as i32 % d[2],
+        ];
+        std::array::from_fn(|a| self.origin[a] + (g[a] as f32 + 0.5) * self.cell)
+    }
+}
+
 /// Per cell of a grid over the model's bounding box, the model points that
 /// can be nearest to some point in the cell: those within `r + 2h` of its
 /// centre, where `r` is the distance from the centre to its nearest model
@@ -229,9 +284,7 @@ const LIST_BAND_CELLS: f64 = 2.0;
 /// and so does every cell of a model of more than 65,536 points (lists of
 /// 16-bit indices; the index of a YCB model of 4,096 points holds 0.8–1.5 MB).
 struct CandidateLists {
-    origin: [f32; 3],
-    cell: f32,
-    dims: [i32; 3],
+    grid: Grid,
     /// Cell `c`'s list is `items[starts[c]..starts[c + 1]]` (empty: none).
     starts: Vec<u32>,
     items: Vec<u16>,
@@ -239,13 +292,8 @@ struct CandidateLists {
 
 impl CandidateLists {
     fn new(points: &[Point3], lo: [f32; 3], hi: [f32; 3], cell: f32, tree: &ModelTree) -> Self {
-        // At most ~1 M cells, whatever the spacing (a degenerate model).
-        let volume: f64 = (0..3)
-            .map(|a| (hi[a] - lo[a]) as f64 + cell as f64)
-            .product();
-        let cell = cell.max((volume / 1e6).cbrt() as f32).max(1e-6);
-        let dims: [i32; 3] = std::array::from_fn(|a| ((hi[a] - lo[a]) / cell).floor() as i32 + 1);
-        let count = dims.iter().map(|&d| d as usize).product::<usize>();
+        let grid = Grid::new(lo, hi, cell, 0.0);
+        let (cell, dims, count) = (grid.cell, grid.dims, grid.count());
         let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
         let band = LIST_BAND_CELLS * cell as f64;
         // Cells within `band` of some model point: those in the cube of
@@ -254,12 +302,13 @@ impl CandidateLists {
         let reach = band.div_euclid(cell as f64) as i32 + 1;
         let short = points.len() <= 1 << 16; // indices fit 16 bits
         for p in points.iter().filter(|_| short) {
-            let g: [i32; 3] =
-                std::array::from_fn(|a| (((p[a] - lo[a]) / cell) as i32).min(dims[a] - 1));
+            let g = grid
+                .coordinates(p)
+                .expect("model points lie inside the grid");
             for x in (g[0] - reach).max(0)..=(g[0] + reach).min(dims[0] - 1) {
                 for y in (g[1] - reach).max(0)..=(g[1] + reach).min(dims[1] - 1) {
                     for z in (g[2] - reach).max(0)..=(g[2] + reach).min(dims[2] - 1) {
-                        near[((x * dims[1] + y) * dims[2] + z) as usize] = true;
+                        near[grid.flat([x, y, z])] = true;
                     }
                 }
             }
@@ -270,12 +319,7 @@ impl CandidateLists {
                 if !near[c] {
                     return Vec::new();
                 }
-                let g = [
-                    c as i32 / (dims[1] * dims[2]),
-                    (c as i32 / dims[2]) % dims[1],
-                    c as i32 % dims[2],
-                ];
-                let centre: [f32; 3] = std::array::from_fn(|a| lo[a] + (g[a] as f32 + 0.5) * cell);
+                let centre = grid.centre(c);
                 let r = (tree.nearest_one::<SquaredEuclidean>(&centre).distance as f64).sqrt();
                 if r > band {
                     return Vec::new();
@@ -299,26 +343,18 @@ impl CandidateLists {
             starts.push(items.len() as u32);
         }
         Self {
-            origin: lo,
-            cell,
-            dims,
+            grid,
             starts,
             items,
         }
     }
 
     /// The list of `p`'s cell: empty outside the box or far from the model.
-    #[allow(clippy::needless_range_loop)] // axes a = x, y, z of three arrays
     fn of(&self, p: &[f32; 3]) -> &[u16] {
-        let mut c = 0usize;
-        for a in 0..3 {
-            let v = (p[a] - self.origin[a]) / self.cell;
-            // `v as i32` rounds towards zero: the floor for v ≥ 0.
-            if !(v >= 0.0 && v < self.dims[a] as f32) {
-                return &[];
-            }
-            c = c * self.dims[a] as usize + (v as i32).min(self.dims[a] - 1) as usize;
-        }
+        let Some(g) = self.grid.coordinates(p) else {
+            return &[];
+        };
+        let c = self.grid.flat(g);
         &self.items[self.starts[c] as usize..self.starts[c + 1] as usize]
     }
 }
@@ -342,34 +378,15 @@ impl CellIndex {
             .sum::<f64>()
             .sqrt();
         let margin = MARGIN_DIAGONALS * diagonal;
-        // At most ~1 M cells, whatever the spacing (a degenerate model).
-        let volume: f64 = (0..3)
-            .map(|a| (hi[a] - lo[a]) as f64 + 2.0 * margin)
-            .product();
-        let cell = cell.max((volume / 1e6).cbrt() as f32).max(1e-6);
-        let origin = lo.map(|v| v - margin as f32);
-        let dims: [i32; 3] = std::array::from_fn(|a| {
-            ((hi[a] - origin[a]) as f64 + margin).div_euclid(cell as f64) as i32 + 1
-        });
-        let mut index = Self {
-            lists: CandidateLists::new(points, lo, hi, LIST_SPACINGS * spacing, tree),
-            origin,
-            margin: margin * (1.0 - 1e-6) - 1e-9,
-            clearance: Vec::new(),
-            anchor: Vec::new(),
-            cell,
-            dims,
-            starts: Vec::new(),
-            points: Vec::new(),
-        };
-        let count = dims.iter().map(|&d| d as usize).product::<usize>();
+        let grid = Grid::new(lo, hi, cell, margin);
+        let count = grid.count();
         let cell_of: Vec<usize> = points
             .iter()
             .map(|p| {
-                let g = index
-                    .coordinates(p)
-                    .expect("model points lie inside the grid");
-                index.flat(g)
+                grid.flat(
+                    grid.coordinates(p)
+                        .expect("model points lie inside the grid"),
+                )
             })
             .collect();
         let mut starts = vec![0u32; count + 1];
@@ -387,50 +404,31 @@ impl CellIndex {
         }
         // From the cell's centre, minus half its diagonal (and some slack
         // for rounding), to the nearest model point.
-        let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
-        (index.clearance, index.anchor) = (0..count)
+        let half_diagonal = 0.5 * 3f64.sqrt() * grid.cell as f64;
+        let (clearance, anchor) = (0..count)
             .into_par_iter()
             .map(|c| {
                 if points.is_empty() {
                     return (0.0, 0);
                 }
-                let (x, y, z) = (
-                    c as i32 / (dims[1] * dims[2]),
-                    (c as i32 / dims[2]) % dims[1],
-                    c as i32 % dims[2],
-                );
-                let centre: [f32; 3] =
-                    std::array::from_fn(|a| origin[a] + ([x, y, z][a] as f32 + 0.5) * cell);
-                let nn = tree.nearest_one::<SquaredEuclidean>(&centre);
+                let nn = tree.nearest_one::<SquaredEuclidean>(&grid.centre(c));
                 if starts[c + 1] > starts[c] {
                     return (0.0, nn.item);
                 }
                 let nearest = (nn.distance as f64).sqrt();
-                let clearance = (nearest - half_diagonal) * (1.0 - 1e-5) - 1e-6 * cell as f64;
+                let clearance = (nearest - half_diagonal) * (1.0 - 1e-5) - 1e-6 * grid.cell as f64;
                 (clearance.max(0.0) as f32, nn.item)
             })
             .unzip();
-        index.starts = starts;
-        index.points = sorted;
-        index
-    }
-
-    /// The cell holding `p`, or None outside the grid.
-    fn coordinates(&self, p: &[f32; 3]) -> Option<[i32; 3]> {
-        let mut g = [0i32; 3];
-        for a in 0..3 {
-            let v = (p[a] - self.origin[a]) / self.cell;
-            // `v as i32` rounds towards zero: the floor for v ≥ 0.
-            if !(v >= 0.0 && v < self.dims[a] as f32) {
-                return None;
-            }
-            g[a] = (v as i32).min(self.dims[a] - 1);
+        Self {
+            grid,
+            margin: margin * (1.0 - 1e-6) - 1e-9,
+            clearance,
+            anchor,
+            starts,
+            points: sorted,
+            lists: CandidateLists::new(points, lo, hi, LIST_SPACINGS * spacing, tree),
         }
-        Some(g)
-    }
-
-    fn flat(&self, g: [i32; 3]) -> usize {
-        ((g[0] * self.dims[1] + g[1]) * self.dims[2] + g[2]) as usize
     }
 
     /// The nearest of the `model`'s points to `p` and its squared distance,
@@ -441,14 +439,15 @@ impl CellIndex {
         if model.is_empty() {
             return Lookup::Unknown;
         }
-        let Some(g) = self.coordinates(p) else {
+        let grid = &self.grid;
+        let Some(g) = grid.coordinates(p) else {
             return if max_distance < self.margin {
                 Lookup::Beyond
             } else {
                 Lookup::Unknown
             };
         };
-        if self.clearance[self.flat(g)] as f64 > max_distance {
+        if self.clearance[grid.flat(g)] as f64 > max_distance {
             return Lookup::Beyond;
         }
         let list = self.lists.of(p);
@@ -467,19 +466,19 @@ impl CellIndex {
         // plus that wall away, and is skipped when farther than the nearest
         // point so far (or than `max_distance`: such a point is not wanted).
         let lower: [f32; 3] =
-            std::array::from_fn(|a| p[a] - (self.origin[a] + g[a] as f32 * self.cell));
-        let upper: [f32; 3] = std::array::from_fn(|a| self.cell - lower[a]);
+            std::array::from_fn(|a| p[a] - (grid.origin[a] + g[a] as f32 * grid.cell));
+        let upper: [f32; 3] = std::array::from_fn(|a| grid.cell - lower[a]);
         let gap = |a: usize, k: i32| match k {
             0 => 0.0,
-            k if k < 0 => lower[a] + (-k - 1) as f32 * self.cell,
-            k => upper[a] + (k - 1) as f32 * self.cell,
+            k if k < 0 => lower[a] + (-k - 1) as f32 * grid.cell,
+            k => upper[a] + (k - 1) as f32 * grid.cell,
         };
         let wanted = (max_distance * max_distance).min(f32::MAX as f64) as f32;
-        let anchor = self.anchor[self.flat(g)];
+        let anchor = self.anchor[grid.flat(g)];
         let mut best = (squared(p, &model[anchor as usize]), anchor);
         for ring in 0..=MAX_RING {
             let lo: [i32; 3] = std::array::from_fn(|a| (g[a] - ring).max(0));
-            let hi: [i32; 3] = std::array::from_fn(|a| (g[a] + ring).min(self.dims[a] - 1));
+            let hi: [i32; 3] = std::array::from_fn(|a| (g[a] + ring).min(grid.dims[a] - 1));
             for x in lo[0]..=hi[0] {
                 let gx = gap(0, x - g[0]).powi(2);
                 for y in lo[1]..=hi[1] {
@@ -495,7 +494,7 @@ impl CellIndex {
                             continue;
                         }
                         if gxy + gap(2, z - g[2]).powi(2) <= best.0.min(wanted) {
-                            let c = self.flat([x, y, z]);
+                            let c = grid.flat([x, y, z]);
                             let (a, b) = (self.starts[c] as usize, self.starts[c + 1] as usize);
                             for &(q, item) in &self.points[a..b] {
                                 let d = squared(p, &q);
@@ -515,7 +514,7 @@ impl CellIndex {
                 if ga - ring > 0 {
                     clearance = clearance.min(gap(a, -ring - 1));
                 }
-                if ga + ring < self.dims[a] - 1 {
+                if ga + ring < grid.dims[a] - 1 {
                     clearance = clearance.min(gap(a, ring + 1));
                 }
             }
