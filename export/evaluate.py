@@ -54,7 +54,7 @@ def evaluate_object(encoder: Encoder, path: Path, queries: int, seed: int) -> di
         query = prepare_query(view.cloud, codebook)
         r_true = query.r_corr @ view.T_cam_obj[:3, :3]  # object → corrected view
         direction = -r_true[2]  # object frame, towards the camera
-        candidates, _, angles = retrieve(query, codebook, encoder, TOP_K)
+        candidates, _, angles, _ = retrieve(query, codebook, encoder, TOP_K)
         near = np.degrees(np.arccos(np.clip(views.directions[candidates] @ direction, -1, 1))) <= WITHIN_DEG
         top1 += bool(near[0])
         ok = bool(near.any())

@@ -7,8 +7,10 @@ import threading
 import edgepose
 import numpy as np
 import pytest
+from edgepose.encoder import default_encoder
 from edgepose.eval import pose_errors, render_view
 from edgepose.model import read_mesh
+from edgepose.stages import prepare_query, retrieve
 
 
 def errors(pose, view, codebook):
@@ -193,12 +195,18 @@ def test_a_doubtful_pose_gets_a_second_wider_search_that_never_does_worse(drill)
     settings = edgepose.EstimateSettings()
     for seed in (3, 100):
         view = render_view(mesh, seed=seed)
-        first = edgepose.estimate(view.cloud, codebook, settings=settings.with_(retry_k=0))
+        first = edgepose.estimate(view.cloud, codebook, settings=settings.with_(pair_poses=0))
         # A bar no pose clears: every estimate is doubtful and searched again.
-        both = edgepose.estimate(view.cloud, codebook, settings=settings.with_(retry_below_inlier_fraction=1.01))
+        doubting = settings.with_(retry_below_inlier_fraction=1.01)
+        both = edgepose.estimate(view.cloud, codebook, settings=doubting)
         assert first.searches == 1 and len(first.candidates) == 16
-        assert both.searches == 2 and len(both.candidates) == settings.retry_k
+        assert both.searches == 2 and 16 < len(both.candidates) <= 16 + settings.pair_poses
+        assert "pair_poses" in both.timings and "pair_poses" not in first.timings
         np.testing.assert_array_equal(both.candidates[:16], first.candidates)  # the same ranking, extended
+        wider = edgepose.estimate(view.cloud, codebook, settings=doubting.with_(retry_k=48))
+        ranking = retrieve(prepare_query(view.cloud, codebook), codebook, default_encoder(), 48).views
+        np.testing.assert_array_equal(wider.candidates[:48], ranking)  # 32 more views down the cosine ranking
+        assert len(wider.candidates) == len(both.candidates) + 32
         net = lambda p: p.inlier_fraction - p.free_space_violation  # noqa: E731
         assert net(both) >= net(first) - 1e-12
         assert errors(both, view, codebook).add < 0.1 * codebook.model.diameter

@@ -11,7 +11,7 @@ import pytest
 from edgepose import _core
 from edgepose.cloud import FLYING_PIXEL_JUMP, depth_discontinuities, dilate, erode
 from edgepose.eval import pose_errors, render_scene
-from edgepose.stages import near_the_cloud, prepare_query
+from edgepose.stages import near_the_cloud, pair_poses, prepare_query
 
 K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
 
@@ -118,3 +118,30 @@ def test_poses_far_from_the_observed_points_are_not_plausible(drill):
     assert near_the_cloud(query, codebook, np.stack([true_centre, behind, beside])).tolist() == [True, False, False]
     pose = edgepose.estimate(view.cloud, codebook)
     assert np.linalg.norm(pose.t + pose.R @ codebook.model.centre - query.centroid) <= 1.25 * radius
+
+
+def test_point_pairs_find_a_mostly_hidden_object_that_the_view_codes_miss(drill):
+    # 40 % visible: the map's code matches no codebook view near the truth on
+    # most of these views (the first search alone gets 1 of the 6 right),
+    # while the point pairs' strongest pose is right on each, and estimate's
+    # second search, which adds them, on 5 or more.
+    mesh, codebook = drill
+    points, d = codebook.model.mesh_points, codebook.model.diameter
+    add = lambda T, view: pose_errors(points, T, view.T_cam_obj, d, False).add  # noqa: E731
+    first_only, strongest_pair, both = 0, 0, 0
+    for seed in (4, 5, 7, 8, 9, 10):
+        view = render_scene(mesh, "visible40", seed=seed)
+        first_only += add(estimate_with(view, codebook, pair_poses=0), view) < 0.1 * d
+        rotations, translations = pair_poses(prepare_query(view.cloud, codebook), codebook)
+        assert 1 <= len(rotations) <= edgepose.EstimateSettings().pair_poses
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = rotations[0], translations[0] - rotations[0] @ codebook.model.centre
+        strongest_pair += add(T, view) < 0.1 * d
+        pose = edgepose.estimate(view.cloud, codebook)
+        both += add(pose.matrix, view) < 0.1 * d
+        assert pose.searches == 2
+    assert first_only <= 2 and strongest_pair >= 5 and both >= 5, (first_only, strongest_pair, both)
+
+
+def estimate_with(view, codebook, **settings):
+    return edgepose.estimate(view.cloud, codebook, settings=edgepose.EstimateSettings(**settings)).matrix

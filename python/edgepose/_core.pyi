@@ -124,6 +124,9 @@ class ModelIndex:
         max_iterations: int,
         max_distance: float,
     ) -> IcpResults: ...
+    def pair_poses(
+        self, cloud: npt.NDArray[np.float32], scene_points: int, reference_stride: int, poses: int
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
 
 # Built with the `test-hooks` cargo feature only (`make build`; never in the wheel).
 def _panic_for_tests(message: str, where_: str) -> None: ...

@@ -1,7 +1,8 @@
 """``estimate(cloud, codebook)``: the 6D pose of an object from its segmented
 depth cloud, by the five stages of :mod:`edgepose.stages` (prepare the query,
 retrieve codebook views, pose them, score them, refine the best hypotheses);
-a doubtful pose gets a second, wider search (:func:`doubtful`). Every pose
+a doubtful pose gets a second search that adds poses voted for by point
+pairs, which see past occluders (:func:`doubtful`). Every pose
 carries its ``confidence`` (:mod:`edgepose.confidence`) and the object's
 symmetries.
 
@@ -26,6 +27,8 @@ from edgepose.stages import (
     Query,
     Refined,
     candidate_poses,
+    nearest_views,
+    pair_poses,
     prepare_query,
     refine_hypotheses,
     retrieve,
@@ -49,14 +52,18 @@ class Pose:
     pose, each truncated at the inlier distance (``settings.hypothesis_inlier_distance``
     × diameter when refined, else the candidates' looser one)."""
     view: int
-    """Index of the chosen codebook viewpoint."""
+    """Index of the chosen codebook viewpoint (for a pose voted for by
+    point pairs: the viewpoint nearest to the camera's direction)."""
     candidates: np.ndarray
-    """(K,) viewpoint indices of the cosine top-K, best code first."""
+    """(K,) viewpoint indices of the candidates, in order: the cosine top-K,
+    best code first, then (second search) the next ones down the ranking and
+    the point pairs' poses' viewpoints."""
     candidate_fit: np.ndarray
     """(K,) truncated keypoint distance of each candidate pose, metres."""
     timings: dict = field(default_factory=dict)
     """Seconds per stage, named as the stage functions: prepare_query, retrieve,
-    candidate_poses, score_poses, refine_hypotheses, then confidence (the
+    candidate_poses, score_poses, refine_hypotheses (pair_poses when the
+    second search ran), then confidence (the
     evidence and its probability), and the total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
@@ -71,8 +78,8 @@ class Pose:
     """Observed points that :func:`prepare_query` kept as the object (of at
     most ``settings.max_cloud_points``)."""
     searches: int = 1
-    """1, or 2 when the first pose was doubtful and a wider search followed
-    (``settings.retry_k`` candidates; see :func:`doubtful`); 0 for a
+    """1, or 2 when the first pose was doubtful and a second search followed
+    (poses voted for by point pairs; see :func:`doubtful`); 0 for a
     :class:`edgepose.Tracker`'s tracked frame (no search)."""
     confidence: float = float("nan")
     """Probability (0–1) that the pose is correct, i.e. within ADD(-S) <
@@ -176,10 +183,8 @@ def pose_from_query(
     """Stages 2–5 and the confidence for a prepared ``query`` (``encoded``:
     its map's code and spectrum, when already computed), as :func:`estimate`."""
 
-    def posed(views: np.ndarray, angles: np.ndarray) -> Candidates:
-        """Stages 3 and 4 for codebook ``views`` and their in-plane ``angles``."""
-        rotations, translations = candidate_poses(query, codebook, views, angles, settings)
-        laps("candidate_poses")
+    def scored(rotations: np.ndarray, translations: np.ndarray) -> Candidates:
+        """Stage 4 for candidate poses (model frame → camera)."""
         scores = score_poses(
             query,
             codebook,
@@ -193,20 +198,71 @@ def pose_from_query(
         laps("score_poses")
         return Candidates(rotations, translations, scores)
 
-    # One retrieval serves both searches: the second one's extra views are
-    # the next ones down the same ranking.
+    def posed(views: np.ndarray, angles: np.ndarray) -> Candidates:
+        """Stages 3 and 4 for codebook ``views`` and their in-plane ``angles``."""
+        rotations, translations = candidate_poses(query, codebook, views, angles, settings)
+        laps("candidate_poses")
+        return scored(rotations, translations)
+
+    def with_pair_poses(found: Candidates) -> Candidates:
+        """``found`` followed by the point pairs' poses (their views: each
+        pose's nearest viewpoint)."""
+        rotations, translations = pair_poses(query, codebook, settings)
+        laps("pair_poses")
+        nearest = nearest_views(codebook, rotations, translations)
+        views.append(nearest)
+        similarity.append(codebook.codes[nearest] @ retrieval.code)
+        return found.extended(scored(rotations, translations))
+
+    # One retrieval serves both searches: the second one's extra views (if
+    # retry_k asks for any) are the next ones down the same ranking.
     retry_k = min(settings.retry_k, len(codebook)) if refine else 0
-    views, similarity, angles = retrieve(query, codebook, encoder, max(settings.k, retry_k), encoded)
+    retrieval = retrieve(query, codebook, encoder, max(settings.k, retry_k), encoded)
     laps("retrieve")
     k = settings.k
-    found = posed(views[:k], angles[:k])
+    # Each candidate's viewpoint and cosine similarity, in candidate order.
+    views, similarity = [retrieval.views[:k]], [retrieval.similarity[:k]]
+    found = posed(retrieval.views[:k], retrieval.angles[:k])
+    pairs = settings.pair_poses if refine else 0
+    observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
+
+    def judged(result: Refined, loose: PoseScores, searches: int) -> tuple[dict, float]:
+        """The pose's evidence and confidence (NaN without a confidence model)."""
+        tight = (
+            result.scores
+            if result.refined
+            else scores_at(query, codebook, result, settings.hypothesis_inlier_distance, settings)
+        )
+        evidence = evidence_of(
+            inlier_fraction=tight.inlier_fraction[0],
+            loose_inlier_fraction=loose.inlier_fraction[0],
+            fit_ratio=tight.fit[0] / (settings.hypothesis_inlier_distance * codebook.model.diameter),
+            free_space_violation=loose.free_space_violation[0],
+            score=np.concatenate(similarity)[result.candidate],
+            searches=searches,
+            refined=result.refined,
+            margin=result.margin,
+            off_silhouette=loose.off_silhouette[0],
+            observed_extent=observed_extent,
+        )
+        return evidence, encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
+
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
     loose = loose_scores(query, codebook, result, settings)
     laps("refine_hypotheses")
     searches = 1
-    if retry_k > k and doubtful(query, codebook, result, settings, loose):
-        found = found.extended(posed(views[k:retry_k], angles[k:retry_k]))
+    evidence, confidence = judged(result, loose, searches)
+    laps("confidence")
+    if (retry_k > k or pairs) and (
+        doubtful(query, codebook, result, settings, loose) or confidence < settings.retry_below_confidence
+    ):
+        if retry_k > k:
+            found = found.extended(posed(retrieval.views[k:retry_k], retrieval.angles[k:retry_k]))
+            views.append(retrieval.views[k:retry_k])
+            similarity.append(retrieval.similarity[k:retry_k])
+        if pairs:
+            found = with_pair_poses(found)
         wider = best_pose(
             query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
         )
@@ -214,25 +270,9 @@ def pose_from_query(
         if explains_more(wider, result):
             result, loose = wider, loose_scores(query, codebook, wider, settings)
         laps("refine_hypotheses")
-    tight = (
-        result.scores
-        if result.refined
-        else scores_at(query, codebook, result, settings.hypothesis_inlier_distance, settings)
-    )
-    evidence = evidence_of(
-        inlier_fraction=tight.inlier_fraction[0],
-        loose_inlier_fraction=loose.inlier_fraction[0],
-        fit_ratio=tight.fit[0] / (settings.hypothesis_inlier_distance * codebook.model.diameter),
-        free_space_violation=loose.free_space_violation[0],
-        score=similarity[result.candidate],
-        searches=searches,
-        refined=result.refined,
-        margin=result.margin,
-        off_silhouette=loose.off_silhouette[0],
-        observed_extent=math.hypot(*box_sides(query.points)) / codebook.model.diameter,
-    )
-    confidence = encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
-    laps("confidence")
+        evidence, confidence = judged(result, loose, searches)
+        laps("confidence")
+    views, similarity = np.concatenate(views), np.concatenate(similarity)
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model
@@ -244,7 +284,7 @@ def pose_from_query(
         score=float(similarity[result.candidate]),
         fit=float(result.scores.fit[0]),
         view=int(views[result.candidate]),
-        candidates=views[: len(found.rotations)],
+        candidates=views,
         candidate_fit=found.scores.fit,
         timings=timings,
         searches=searches,
@@ -338,7 +378,9 @@ def doubtful(
     """Whether a search's pose (model frame → camera) is worth a second,
     wider search: not refined, or explaining too few of the hypotheses'
     observed points within ``settings.doubt_inlier_distance``, or
-    contradicting free space (``loose``: its :func:`loose_scores`, if known)."""
+    contradicting free space (``loose``: its :func:`loose_scores`, if known).
+    :func:`estimate` also searches again when the pose's confidence is below
+    ``settings.retry_below_confidence``."""
     if not result.refined:
         return True
     scores = loose or loose_scores(query, codebook, result, settings)

@@ -7,7 +7,8 @@ step 7), each reusable on its own (the exporter's evaluation, benchmarks):
    resample it to a map;
 2. :func:`retrieve` — encode the map, cosine top-K over the codebook's
    codes (Rust), the in-plane angle of each candidate (IRR head);
-3. :func:`candidate_poses` — each candidate view and angle as a pose;
+3. :func:`candidate_poses` — each candidate view and angle as a pose
+   (:func:`pair_poses`: poses voted for by point pairs, for doubtful views);
 4. :func:`score_poses` — how well each pose explains the view: truncated
    keypoint distances to the model and free-space violations (Rust);
 5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
@@ -98,17 +99,30 @@ def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings 
     return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
 
 
+class Retrieval(NamedTuple):
+    """Stage 2's outcome: the codebook views most similar to the query."""
+
+    views: np.ndarray
+    """(k,) viewpoint indices, most similar first."""
+    similarity: np.ndarray
+    """(k,) cosine similarity of each view's code to the query's."""
+    angles: np.ndarray
+    """(k,) in-plane angle to each view, radians."""
+    code: np.ndarray
+    """(D,) the query map's unit code."""
+
+
 def retrieve(
     query: Query,
     codebook: Codebook,
     encoder: Encoder,
     k: int,
     encoded: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> Retrieval:
     """Stage 2: the map's code and its ``k`` most similar codebook views, with
-    the in-plane angle to each: ``(candidates (k,), similarities (k,), angles
-    (k,) radians)``. ``encoded``: the map's ``(code, spectrum)`` when already
-    encoded (:func:`edgepose.estimate_many` encodes a frame's maps at once)."""
+    the in-plane angle to each. ``encoded``: the map's ``(code, spectrum)``
+    when already encoded (:func:`edgepose.estimate_many` encodes a frame's
+    maps at once)."""
     if encoded is None:
         codes, spectra = encoder.encode(query.map[None])
         encoded = codes[0], spectra[0]
@@ -116,7 +130,7 @@ def retrieve(
     candidates, similarity = _core.top_k(codebook.codes, code, k)
     candidates = candidates.astype(np.intp)
     angles = encoder.in_plane_angles(spectrum, codebook.spectra[candidates]).astype(np.float64)
-    return candidates, similarity, angles
+    return Retrieval(candidates, similarity, angles, code)
 
 
 def candidate_poses(
@@ -140,6 +154,28 @@ def candidate_poses(
             settings.candidate_inlier_distance * codebook.model.diameter,
         )
     return rotations, translations
+
+
+def pair_poses(
+    query: Query, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 3 without the codebook's views: poses voted for by pairs of
+    oriented points of the query and the model (point-pair features, Rust),
+    ``(R (P, 3, 3), t (P, 3))`` model frame → camera, most votes first, at
+    most ``settings.pair_poses``. Each pair is local, so they find the
+    object when most of it is hidden and the map's code matches no view."""
+    rotations, translations, _ = codebook.index.pair_poses(
+        query.points, settings.pair_scene_points, settings.pair_reference_stride, settings.pair_poses
+    )
+    return rotations, translations
+
+
+def nearest_views(codebook: Codebook, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """(P,) the codebook viewpoint nearest to the camera's direction in each
+    pose (model frame → camera)."""
+    towards_camera = -np.einsum("pji,pj->pi", rotations, translations)
+    towards_camera /= np.linalg.norm(towards_camera, axis=1, keepdims=True)
+    return np.argmax(towards_camera @ codebook.viewpoints.directions.T, axis=1).astype(np.intp)
 
 
 def score_poses(

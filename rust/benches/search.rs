@@ -1,9 +1,11 @@
 //! Query hot path: cosine top-16 over 2,100 codes, verification of 16
-//! candidates by 32 keypoints, and ICP. `cargo bench --bench search`.
+//! candidates by 32 keypoints, ICP, segmentation, scoring and point-pair
+//! votes. `cargo bench --bench search`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Rotation3, Unit, Vector3};
 
+use edgepose_core::pairs::{PairSettings, PairTable};
 use edgepose_core::rng::SplitMix64;
 use edgepose_core::scoring::align_translations;
 use edgepose_core::{
@@ -154,6 +156,15 @@ fn bench_search(c: &mut Criterion) {
     });
     group.bench_function("align_16_candidates_32_keypoints_3_iterations", |b| {
         b.iter(|| align_translations(&index, &keypoints, &candidates, 3, 0.012))
+    });
+    // Point pairs: the model's table (built once per codebook, on the first
+    // doubtful view), and the votes of 192 of the seen points.
+    group.bench_function("pair_table_384_model_points", |b| {
+        b.iter(|| PairTable::new(index.points(), index.normals()))
+    });
+    index.pair_table();
+    group.bench_function("pair_poses_192_points_stride_2", |b| {
+        b.iter(|| index.pair_poses(&seen, &PairSettings::default()))
     });
     group.finish();
 }

@@ -7,12 +7,14 @@
 //! kd-tree the rest.
 
 use std::num::NonZero;
+use std::sync::OnceLock;
 
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
+use crate::pairs::{pair_poses, PairSettings, PairTable, VotedPose};
 use crate::Point3;
 
 /// The model's kd-tree: leaves of 8 points, not kiddo's default 32. ICP,
@@ -31,6 +33,9 @@ pub struct ModelIndex {
     cells: CellIndex,
     points: Vec<Point3>,
     normals: Vec<Point3>,
+    /// Built on the first [`ModelIndex::pair_poses`]: only doubtful views
+    /// ask for it, so loading a codebook does not pay for it.
+    pairs: OnceLock<PairTable>,
 }
 
 /// A rigid transform `p_cam = rotation · p_model + translation` (metres).
@@ -64,7 +69,20 @@ impl ModelIndex {
             cells,
             points,
             normals,
+            pairs: OnceLock::new(),
         }
+    }
+
+    /// The model's point-pair table ([`crate::pairs`]), built on first use.
+    pub fn pair_table(&self) -> &PairTable {
+        self.pairs
+            .get_or_init(|| PairTable::new(&self.points, &self.normals))
+    }
+
+    /// Pose hypotheses (model frame → camera) voted for by point pairs of
+    /// the observed `cloud` (camera frame, metres), most votes first.
+    pub fn pair_poses(&self, cloud: &[Point3], settings: &PairSettings) -> Vec<VotedPose> {
+        pair_poses(self.pair_table(), cloud, settings)
     }
 
     pub fn len(&self) -> usize {

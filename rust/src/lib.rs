@@ -9,6 +9,7 @@ pub mod grouping;
 pub mod index;
 pub mod maps;
 pub mod model;
+pub mod pairs;
 pub mod refine;
 pub mod rng;
 pub mod sampling;

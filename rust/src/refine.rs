@@ -146,13 +146,13 @@ impl ModelIndex {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::model::tests::cube_mesh;
     use crate::model::StandardModel;
 
     /// An L-shaped bracket of boxes: no symmetry, so ICP has one answer.
-    fn bracket() -> StandardModel {
+    pub(crate) fn bracket() -> StandardModel {
         let (v1, f1) = cube_mesh(0.05);
         let (v2, f2) = cube_mesh(0.02);
         let mut vertices: Vec<[f64; 3]> =
@@ -163,7 +163,7 @@ mod tests {
         StandardModel::from_mesh(&vertices, &faces, 4096, 11).unwrap()
     }
 
-    fn pose(axis: Vector3<f64>, angle: f64, t: Vector3<f64>) -> Pose {
+    pub(crate) fn pose(axis: Vector3<f64>, angle: f64, t: Vector3<f64>) -> Pose {
         Pose {
             rotation: *Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle)
                 .matrix(),

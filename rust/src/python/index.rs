@@ -9,6 +9,7 @@ use super::arrays::{poses_from, rotations_array, translations_array, triples};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
 use crate::index::ModelIndex;
+use crate::pairs::PairSettings;
 use crate::refine::IcpResult;
 use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
 use crate::{search, Point3};
@@ -152,6 +153,44 @@ impl PyModelIndex {
                 PyArray1::from_vec(py, scores.iter().map(|s| s.inlier_fraction).collect()),
                 PyArray1::from_vec(py, scores.iter().map(|s| s.free_space_violation).collect()),
                 PyArray1::from_vec(py, scores.iter().map(|s| s.off_silhouette).collect()),
+            )
+                .into_pyobject(py)
+                .map(|t| t.into_any())
+        })
+    }
+
+    /// Pose hypotheses voted for by point pairs of the observed `cloud`
+    /// (camera frame, metres): `(rotations (H, 3, 3), translations (H, 3),
+    /// votes (H,))`, model → camera, most votes first; at most `poses`.
+    /// `scene_points` of the cloud vote, every `reference_stride`-th of
+    /// them as a reference point. The model's pair table is built on the
+    /// first call.
+    fn pair_poses<'py>(
+        &self,
+        py: Python<'py>,
+        cloud: PyReadonlyArray2<'py, f32>,
+        scene_points: usize,
+        reference_stride: usize,
+        poses: usize,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        guarded(|| {
+            let c = cloud_triples(&cloud, "cloud")?;
+            if scene_points == 0 || reference_stride == 0 {
+                return Err(PyValueError::new_err(
+                    "scene_points and reference_stride must be positive",
+                ));
+            }
+            let settings = PairSettings {
+                scene_points,
+                reference_stride,
+                poses,
+                ..PairSettings::default()
+            };
+            let found = py.detach(|| self.inner.pair_poses(c, &settings));
+            (
+                rotations_array(py, found.iter().map(|v| &v.pose.rotation)),
+                translations_array(py, found.iter().map(|v| &v.pose.translation)),
+                PyArray1::from_vec(py, found.iter().map(|v| v.votes).collect()),
             )
                 .into_pyobject(py)
                 .map(|t| t.into_any())
