@@ -114,6 +114,14 @@ def test_the_core_raises_edgeposes_own_exceptions():
         index.refine(np.zeros((5, 2), np.float32), eye, np.zeros((1, 3)), 5, 0.01)
     with pytest.raises(InvalidCloudError, match="observed"):
         index.align_translations(np.zeros((5, 4), np.float32), eye, np.zeros((1, 3)), 1, 0.01)
+    with pytest.raises(InvalidCloudError, match=r"cloud must have shape \(N, 3\)"):
+        index.pair_poses(np.zeros((5, 2), np.float32), 192, 2, 8)
+    with pytest.raises(ValueError, match="positive"):
+        index.pair_poses(np.zeros((50, 3), np.float32), 0, 2, 8)
+    # Degenerate clouds (one point repeated, NaNs) vote for nothing rather than fail.
+    for cloud in (np.full((50, 3), 0.5, np.float32), np.full((50, 3), np.nan, np.float32)):
+        rotations, translations, votes = index.pair_poses(cloud, 192, 2, 8)
+        assert rotations.shape == (0, 3, 3) and translations.shape == (0, 3) and votes.shape == (0,)
     with pytest.raises(InvalidModelError, match=r"lid\.obj: .*zero surface area"):
         flat = np.zeros((3, 3))
         _core.StandardModel.from_mesh(flat, np.array([[0, 1, 2]], np.uint32), 64, 0, source="lid.obj")

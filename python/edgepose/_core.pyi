@@ -115,7 +115,13 @@ class ModelIndex:
         inlier_distance: float,
         free_space_tolerance: float,
         model_stride: int,
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+    ]: ...
     def refine(
         self,
         cloud: npt.NDArray[np.float32],

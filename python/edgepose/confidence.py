@@ -37,6 +37,8 @@ FEATURES: dict[str, str] = {
     "rival hypothesis more than 0.1 d away (symmetries aside); 1 when there is none",
     "off_silhouette": "share of the model's camera-facing points that land where nothing was observed, 0-1",
     "observed_extent": "diagonal of the kept observed points' bounding box over d (how much of the object is seen)",
+    "translation_constraint": "smallest eigenvalue of the mean n n^T of the model normals nearest to the observed "
+    "points explained within 0.02 d: 0 when the pose could slide along the seen surface, up to 1/3",
 }
 
 
@@ -82,6 +84,7 @@ TERMS: dict[str, tuple[Callable[[float], float], ...]] = {
     "margin": (_value, _clipped_margin, _no_rival),
     "off_silhouette": (_value, _log_share),
     "observed_extent": (_value, _capped_extent),
+    "translation_constraint": (_value, _log_share),
 }
 
 
@@ -158,6 +161,7 @@ def evidence_of(
     margin: float,
     off_silhouette: float,
     observed_extent: float,
+    translation_constraint: float,
 ) -> dict[str, float]:
     """The evidence (:data:`FEATURES`) as a dict of floats."""
     return {
@@ -171,4 +175,5 @@ def evidence_of(
         "margin": float(margin),
         "off_silhouette": float(off_silhouette),
         "observed_extent": float(observed_extent),
+        "translation_constraint": float(translation_constraint),
     }

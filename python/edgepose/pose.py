@@ -244,6 +244,7 @@ def pose_from_query(
             margin=result.margin,
             off_silhouette=loose.off_silhouette[0],
             observed_extent=observed_extent,
+            translation_constraint=tight.translation_constraint[0],
         )
         return evidence, encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
 

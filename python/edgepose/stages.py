@@ -71,6 +71,10 @@ class PoseScores(NamedTuple):
     """fit / inlier distance + free_space_weight × free_space_violation."""
     off_silhouette: np.ndarray
     """Share of the camera-facing model points landing where nothing was observed, 0–1."""
+    translation_constraint: np.ndarray
+    """How firmly the explained points pin the translation: the smallest
+    eigenvalue of the mean n nᵀ of their model normals, 0 (the pose could
+    slide along the seen surface) to 1/3."""
 
 
 def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> Query:
@@ -191,7 +195,7 @@ def score_poses(
     """Stage 4: the terms of each pose against the ``observed`` points (camera
     frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
     d = codebook.model.diameter
-    fit, inliers, violation, off_silhouette = codebook.index.score(
+    fit, inliers, violation, off_silhouette, constraint = codebook.index.score(
         observed,
         query.points,
         query.spacing,
@@ -202,7 +206,7 @@ def score_poses(
         settings.free_space_model_stride,
     )
     cost = fit / inlier_distance + free_space_weight * violation
-    return PoseScores(fit, inliers, violation, cost, off_silhouette)
+    return PoseScores(fit, inliers, violation, cost, off_silhouette, constraint)
 
 
 class Refined(NamedTuple):

@@ -335,8 +335,11 @@ fn feature_key(
 ) -> Option<u32> {
     let d = q - p;
     let distance = d.norm();
+    if !distance.is_finite() || distance <= 0.0 {
+        return None; // coincident points, or NaN coordinates
+    }
     let bin = (distance / distance_step) as usize;
-    if distance <= 0.0 || bin >= DISTANCE_BINS {
+    if bin >= DISTANCE_BINS {
         return None;
     }
     let dir = d / distance;

@@ -17,7 +17,7 @@
 //!
 //! Camera frame (OpenCV), metres.
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
 use crate::index::{ModelIndex, Pose};
@@ -134,6 +134,12 @@ pub struct PoseScore {
     /// observed (off the observed silhouette: hidden by an occluder, or a
     /// wrong pose), 0–1 (0 when no model point faces the camera).
     pub off_silhouette: f64,
+    /// Smallest eigenvalue of the mean `n nᵀ` over the model normals nearest
+    /// to the inlier points: how firmly the seen surface pins the pose's
+    /// translation. 0 when it could slide along some direction without
+    /// leaving the surface (one face of a box, the side of a can), up to
+    /// 1/3 for normals spread evenly; 0 with fewer than 3 inliers.
+    pub translation_constraint: f64,
 }
 
 /// Moves each pose's translation so the `observed` points (camera frame)
@@ -210,6 +216,7 @@ fn score_pose(
 ) -> PoseScore {
     let to_model = pose.inverse();
     let (mut total, mut inliers) = (0.0f64, 0usize);
+    let mut normal_spread = Matrix3::<f64>::zeros();
     for p in observed {
         let m = to_model.apply(p);
         // Beyond the inlier distance a pair counts as that distance: its
@@ -218,13 +225,22 @@ fn score_pose(
             &[m.x as f32, m.y as f32, m.z as f32],
             settings.inlier_distance,
         ) {
-            Some((_, sq)) => {
+            Some((i, sq)) => {
                 inliers += 1;
                 total += (sq as f64).sqrt();
+                let n = index.normals()[i];
+                let n = Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+                normal_spread += n * n.transpose();
             }
             None => total += settings.inlier_distance,
         }
     }
+    let translation_constraint = if inliers >= 3 {
+        let eigen = SymmetricEigen::new(normal_spread / inliers as f64);
+        eigen.eigenvalues.min().max(0.0)
+    } else {
+        0.0
+    };
     let (mut facing, mut on_rays, mut violations) = (0usize, 0usize, 0usize);
     let stride = settings.model_stride.max(1);
     for (p, n) in index.points().iter().zip(index.normals()).step_by(stride) {
@@ -255,13 +271,14 @@ fn score_pose(
         } else {
             (facing - on_rays) as f64 / facing as f64
         },
+        translation_constraint,
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Matrix3, Rotation3};
+    use nalgebra::Rotation3;
 
     /// Points and outward normals of an axis-aligned box's surface, `spacing` apart.
     fn box_surface(centre: [f32; 3], half: [f32; 3], spacing: f32) -> (Vec<Point3>, Vec<Point3>) {
@@ -447,5 +464,36 @@ mod tests {
             "{score:?}"
         );
         assert!(score.fit <= 0.005 * 0.21, "{score:?}");
+    }
+
+    #[test]
+    fn one_face_of_a_box_does_not_pin_the_translation_and_a_corner_does() {
+        let (points, normals) = box_surface([0.0; 3], [0.05, 0.03, 0.02], 0.002);
+        let index = ModelIndex::new(points.clone(), normals.clone());
+        let pose = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, 0.6),
+        };
+        let grid_of = |seen: &[Point3]| DepthGrid::new(seen, 0.002, 2.0);
+        // The −z face alone (what a camera straight in front sees of the
+        // box), inside its edges: the test box's edge points sit on two faces.
+        let face: Vec<Point3> = posed(&points, &normals, &pose, true)
+            .into_iter()
+            .filter(|p| p[0].abs() < 0.045 && p[1].abs() < 0.025)
+            .collect();
+        let flat = score_poses(&index, &face, &grid_of(&face), &[pose], &settings())[0];
+        assert!(flat.translation_constraint < 1e-3, "{flat:?}");
+        // Turned so that three faces face the camera: normals in 3 directions.
+        let turned = Pose {
+            rotation: *Rotation3::from_euler_angles(0.6, -0.7, 0.3).matrix(),
+            translation: pose.translation,
+        };
+        let corner: Vec<Point3> = posed(&points, &normals, &turned, true);
+        let pinned = score_poses(&index, &corner, &grid_of(&corner), &[turned], &settings())[0];
+        assert!(
+            pinned.translation_constraint > 0.05
+                && pinned.translation_constraint <= 1.0 / 3.0 + 1e-9,
+            "{pinned:?}"
+        );
     }
 }

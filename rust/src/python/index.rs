@@ -112,8 +112,8 @@ impl PyModelIndex {
     /// `translations` (C, 3)) against the `observed` points and the whole
     /// observed `cloud` (camera frame, metres; its point `spacing` sizes the
     /// free-space grid): `(fit (C,) metres, inlier_fraction (C,),
-    /// free_space_violation (C,), off_silhouette (C,))` (see the core's
-    /// `scoring` module).
+    /// free_space_violation (C,), off_silhouette (C,),
+    /// translation_constraint (C,))` (see the core's `scoring` module).
     #[allow(clippy::too_many_arguments)]
     fn score<'py>(
         &self,
@@ -153,6 +153,10 @@ impl PyModelIndex {
                 PyArray1::from_vec(py, scores.iter().map(|s| s.inlier_fraction).collect()),
                 PyArray1::from_vec(py, scores.iter().map(|s| s.free_space_violation).collect()),
                 PyArray1::from_vec(py, scores.iter().map(|s| s.off_silhouette).collect()),
+                PyArray1::from_vec(
+                    py,
+                    scores.iter().map(|s| s.translation_constraint).collect(),
+                ),
             )
                 .into_pyobject(py)
                 .map(|t| t.into_any())
