@@ -229,7 +229,9 @@ def test_doubt_is_a_pose_that_explains_too_few_points_or_violates_free_space(dri
     assert doubtful(query, codebook, Refined(0, R, t, unused, False))  # not refined
 
     def refined(inliers: float, violation: float, was_refined: bool = True) -> Refined:
-        return Refined(0, R, t, PoseScores(one(0.001), one(inliers), one(violation), one(0.1), one(0.0), one(0.1)), was_refined)
+        return Refined(
+            0, R, t, PoseScores(one(0.001), one(inliers), one(violation), one(0.1), one(0.0), one(0.1)), was_refined
+        )
 
     assert explains_more(refined(0.97, 0.0), refined(0.99, 0.05))
     assert not explains_more(refined(0.90, 0.0), refined(0.95, 0.01))

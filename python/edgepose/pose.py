@@ -210,8 +210,8 @@ def pose_from_query(
         rotations, translations = pair_poses(query, codebook, settings)
         laps("pair_poses")
         nearest = nearest_views(codebook, rotations, translations)
-        views.append(nearest)
-        similarity.append(codebook.codes[nearest] @ retrieval.code)
+        view_parts.append(nearest)
+        similarity_parts.append(codebook.codes[nearest] @ retrieval.code)
         return found.extended(scored(rotations, translations))
 
     # One retrieval serves both searches: the second one's extra views (if
@@ -221,7 +221,7 @@ def pose_from_query(
     laps("retrieve")
     k = settings.k
     # Each candidate's viewpoint and cosine similarity, in candidate order.
-    views, similarity = [retrieval.views[:k]], [retrieval.similarity[:k]]
+    view_parts, similarity_parts = [retrieval.views[:k]], [retrieval.similarity[:k]]
     found = posed(retrieval.views[:k], retrieval.angles[:k])
     pairs = settings.pair_poses if refine else 0
     observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
@@ -238,7 +238,7 @@ def pose_from_query(
             loose_inlier_fraction=loose.inlier_fraction[0],
             fit_ratio=tight.fit[0] / (settings.hypothesis_inlier_distance * codebook.model.diameter),
             free_space_violation=loose.free_space_violation[0],
-            score=np.concatenate(similarity)[result.candidate],
+            score=np.concatenate(similarity_parts)[result.candidate],
             searches=searches,
             refined=result.refined,
             margin=result.margin,
@@ -260,8 +260,8 @@ def pose_from_query(
     ):
         if retry_k > k:
             found = found.extended(posed(retrieval.views[k:retry_k], retrieval.angles[k:retry_k]))
-            views.append(retrieval.views[k:retry_k])
-            similarity.append(retrieval.similarity[k:retry_k])
+            view_parts.append(retrieval.views[k:retry_k])
+            similarity_parts.append(retrieval.similarity[k:retry_k])
         if pairs:
             found = with_pair_poses(found)
         wider = best_pose(
@@ -273,7 +273,7 @@ def pose_from_query(
         laps("refine_hypotheses")
         evidence, confidence = judged(result, loose, searches)
         laps("confidence")
-    views, similarity = np.concatenate(views), np.concatenate(similarity)
+    views, similarity = np.concatenate(view_parts), np.concatenate(similarity_parts)
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model
