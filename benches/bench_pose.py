@@ -5,7 +5,7 @@ of the shared YCB meshes, at every stress level, in one process.
                                            [--stress clean,visible70,...] [--peer-views N]
                                            [--seed 0] [--occluders 0] [--out benches/RESULTS.md]
     .venv/bin/python benches/bench_pose.py --tune [...]          # tuning objects -> benches/TUNING.md
-    .venv/bin/python benches/bench_pose.py --tune --set retry_k=64 --out /tmp/t/TUNING.md   # a setting tried
+    .venv/bin/python benches/bench_pose.py --tune --set pair_poses=0 --out /tmp/t/TUNING.md   # a setting tried
     .venv/bin/python benches/bench_pose.py --meshes DIR_OR_FILES [...]
 
 Methods: ``edgepose`` (picked up once ``edgepose.build_codebook`` and
