@@ -183,8 +183,10 @@ def pose_from_query(
     """Stages 2–5 and the confidence for a prepared ``query`` (``encoded``:
     its map's code and spectrum, when already computed), as :func:`estimate`."""
 
-    def scored(rotations: np.ndarray, translations: np.ndarray) -> Candidates:
-        """Stage 4 for candidate poses (model frame → camera)."""
+    def scored(
+        rotations: np.ndarray, translations: np.ndarray, views: np.ndarray, similarity: np.ndarray
+    ) -> Candidates:
+        """Stage 4 for candidate poses (model frame → camera) and their viewpoints."""
         scores = score_poses(
             query,
             codebook,
@@ -196,23 +198,22 @@ def pose_from_query(
             settings,
         )
         laps("score_poses")
-        return Candidates(rotations, translations, scores)
+        return Candidates(rotations, translations, scores, views, similarity)
 
-    def posed(views: np.ndarray, angles: np.ndarray) -> Candidates:
-        """Stages 3 and 4 for codebook ``views`` and their in-plane ``angles``."""
-        rotations, translations = candidate_poses(query, codebook, views, angles, settings)
+    def posed(first: int, end: int) -> Candidates:
+        """Stages 3 and 4 for the retrieved views ``first``..``end``."""
+        views = retrieval.views[first:end]
+        rotations, translations = candidate_poses(query, codebook, views, retrieval.angles[first:end], settings)
         laps("candidate_poses")
-        return scored(rotations, translations)
+        return scored(rotations, translations, views, retrieval.similarity[first:end])
 
-    def with_pair_poses(found: Candidates) -> Candidates:
-        """``found`` followed by the point pairs' poses (their views: each
+    def paired() -> Candidates:
+        """Stages 3 and 4 for the point pairs' poses (their views: each
         pose's nearest viewpoint)."""
         rotations, translations = pair_poses(query, codebook, settings)
         laps("pair_poses")
         nearest = nearest_views(codebook, rotations, translations)
-        view_parts.append(nearest)
-        similarity_parts.append(codebook.codes[nearest] @ retrieval.code)
-        return found.extended(scored(rotations, translations))
+        return scored(rotations, translations, nearest, codebook.codes[nearest] @ retrieval.code)
 
     # One retrieval serves both searches: the second one's extra views (if
     # retry_k asks for any) are the next ones down the same ranking.
@@ -220,14 +221,13 @@ def pose_from_query(
     retrieval = retrieve(query, codebook, encoder, max(settings.k, retry_k), encoded)
     laps("retrieve")
     k = settings.k
-    # Each candidate's viewpoint and cosine similarity, in candidate order.
-    view_parts, similarity_parts = [retrieval.views[:k]], [retrieval.similarity[:k]]
-    found = posed(retrieval.views[:k], retrieval.angles[:k])
+    found = posed(0, k)
     pairs = settings.pair_poses if refine else 0
     observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
 
-    def judged(result: Refined, loose: PoseScores, searches: int) -> tuple[dict, float]:
-        """The pose's evidence and confidence (NaN without a confidence model)."""
+    def judged(found: Candidates, result: Refined, loose: PoseScores, searches: int) -> tuple[dict, float]:
+        """The evidence and confidence (NaN without a confidence model) of
+        ``result``, a search's pose from the candidates ``found``."""
         tight = (
             result.scores
             if result.refined
@@ -238,7 +238,7 @@ def pose_from_query(
             loose_inlier_fraction=loose.inlier_fraction[0],
             fit_ratio=tight.fit[0] / (settings.hypothesis_inlier_distance * codebook.model.diameter),
             free_space_violation=loose.free_space_violation[0],
-            score=np.concatenate(similarity_parts)[result.candidate],
+            score=found.similarity[result.candidate],
             searches=searches,
             refined=result.refined,
             margin=result.margin,
@@ -253,17 +253,15 @@ def pose_from_query(
     loose = loose_scores(query, codebook, result, settings)
     laps("refine_hypotheses")
     searches = 1
-    evidence, confidence = judged(result, loose, searches)
+    evidence, confidence = judged(found, result, loose, searches)
     laps("confidence")
     if (retry_k > k or pairs) and (
         doubtful(query, codebook, result, settings, loose) or confidence < settings.retry_below_confidence
     ):
         if retry_k > k:
-            found = found.extended(posed(retrieval.views[k:retry_k], retrieval.angles[k:retry_k]))
-            view_parts.append(retrieval.views[k:retry_k])
-            similarity_parts.append(retrieval.similarity[k:retry_k])
+            found = found.extended(posed(k, retry_k))
         if pairs:
-            found = with_pair_poses(found)
+            found = found.extended(paired())
         wider = best_pose(
             query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
         )
@@ -271,9 +269,8 @@ def pose_from_query(
         if explains_more(wider, result):
             result, loose = wider, loose_scores(query, codebook, wider, settings)
         laps("refine_hypotheses")
-        evidence, confidence = judged(result, loose, searches)
+        evidence, confidence = judged(found, result, loose, searches)
         laps("confidence")
-    views, similarity = np.concatenate(view_parts), np.concatenate(similarity_parts)
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model
@@ -282,10 +279,10 @@ def pose_from_query(
     return Pose(
         R=result.R,
         t=t_obj,
-        score=float(similarity[result.candidate]),
+        score=float(found.similarity[result.candidate]),
         fit=float(result.scores.fit[0]),
-        view=int(views[result.candidate]),
-        candidates=views,
+        view=int(found.views[result.candidate]),
+        candidates=found.views,
         candidate_fit=found.scores.fit,
         timings=timings,
         searches=searches,
@@ -300,13 +297,17 @@ def pose_from_query(
 
 
 class Candidates(NamedTuple):
-    """Candidate poses (model frame → camera) and their stage-4 scores."""
+    """Candidate poses (model frame → camera), their stage-4 scores and viewpoints."""
 
     rotations: np.ndarray
     """(C, 3, 3)."""
     translations: np.ndarray
     """(C, 3), metres."""
     scores: PoseScores
+    views: np.ndarray
+    """(C,) the codebook viewpoint of each (a point-pair pose: the nearest one)."""
+    similarity: np.ndarray
+    """(C,) cosine similarity of that viewpoint's code to the query's."""
 
     def extended(self, more: Candidates) -> Candidates:
         """These followed by ``more`` (each candidate's terms are its own)."""
@@ -314,6 +315,8 @@ class Candidates(NamedTuple):
             np.concatenate([self.rotations, more.rotations]),
             np.concatenate([self.translations, more.translations]),
             PoseScores(*(np.concatenate([a, b]) for a, b in zip(self.scores, more.scores))),
+            np.concatenate([self.views, more.views]),
+            np.concatenate([self.similarity, more.similarity]),
         )
 
 
