@@ -234,24 +234,44 @@ const LIST_SPACINGS: f32 = 1.0;
 /// of the model get a list (the others hold none).
 const LIST_BAND_CELLS: f64 = 2.0;
 
+/// Most cells of the model's grids, whatever the requested side (a degenerate model).
+const MAX_MODEL_CELLS: f64 = 1e6;
+
+/// The smallest box holding the finite points of `points`, metres (both
+/// corners at the origin when there are none).
+pub(crate) fn bounds(points: &[Point3]) -> ([f32; 3], [f32; 3]) {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for p in points.iter().filter(|p| p.iter().all(|v| v.is_finite())) {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    if lo[0] > hi[0] {
+        return ([0.0; 3], [0.0; 3]);
+    }
+    (lo, hi)
+}
+
 /// A uniform grid of cubes over the box `[lo − margin, hi + margin]`
 /// (metres): which cell holds a point, and where a cell's centre lies. At
-/// most ~1 M cells, whatever the requested side (a degenerate model).
+/// most ~`max_cells` cells: the side grows when the requested one would give more.
 #[derive(Clone, Copy)]
-struct Grid {
+pub(crate) struct Grid {
     /// Corner of cell (0, 0, 0), metres.
-    origin: [f32; 3],
+    pub(crate) origin: [f32; 3],
     /// Cell side, metres.
-    cell: f32,
-    dims: [i32; 3],
+    pub(crate) cell: f32,
+    pub(crate) dims: [i32; 3],
 }
 
 impl Grid {
-    fn new(lo: [f32; 3], hi: [f32; 3], cell: f32, margin: f64) -> Self {
+    pub(crate) fn new(lo: [f32; 3], hi: [f32; 3], cell: f32, margin: f64, max_cells: f64) -> Self {
         let volume: f64 = (0..3)
             .map(|a| (hi[a] - lo[a]) as f64 + 2.0 * margin + cell as f64)
             .product();
-        let cell = cell.max((volume / 1e6).cbrt() as f32).max(1e-6);
+        let cell = cell.max((volume / max_cells).cbrt() as f32).max(1e-6);
         let origin = lo.map(|v| v - margin as f32);
         let dims = std::array::from_fn(|a| {
             ((hi[a] - origin[a]) as f64 + margin).div_euclid(cell as f64) as i32 + 1
@@ -259,12 +279,41 @@ impl Grid {
         Self { origin, cell, dims }
     }
 
-    fn count(&self) -> usize {
+    pub(crate) fn count(&self) -> usize {
         self.dims.iter().map(|&d| d as usize).product()
     }
 
+    /// The indices of `points` sorted by cell (a stable counting sort), and
+    /// per cell where its run starts in that order (`count() + 1` entries:
+    /// cell `c` holds `order[starts[c]..starts[c + 1]]`). Points outside the
+    /// grid (or not finite) come last, in no cell.
+    pub(crate) fn bin(&self, points: &[Point3]) -> (Vec<u32>, Vec<u32>) {
+        let count = self.count();
+        let cell_of: Vec<usize> = points
+            .iter()
+            .map(|p| self.coordinates(p).map_or(count, |g| self.flat(g)))
+            .collect();
+        let mut starts = vec![0u32; count + 2];
+        for &c in &cell_of {
+            starts[c + 1] += 1;
+        }
+        let mut total = 0;
+        for start in starts.iter_mut() {
+            total += *start;
+            *start = total;
+        }
+        let mut next = starts.clone();
+        let mut order = vec![0u32; points.len()];
+        for (i, &c) in cell_of.iter().enumerate() {
+            order[next[c] as usize] = i as u32;
+            next[c] += 1;
+        }
+        starts.truncate(count + 1);
+        (order, starts)
+    }
+
     /// The cell holding `p`, or None outside the grid.
-    fn coordinates(&self, p: &[f32; 3]) -> Option<[i32; 3]> {
+    pub(crate) fn coordinates(&self, p: &[f32; 3]) -> Option<[i32; 3]> {
         let mut g = [0i32; 3];
         for (a, ga) in g.iter_mut().enumerate() {
             let v = (p[a] - self.origin[a]) / self.cell;
@@ -277,7 +326,7 @@ impl Grid {
         Some(g)
     }
 
-    fn flat(&self, g: [i32; 3]) -> usize {
+    pub(crate) fn flat(&self, g: [i32; 3]) -> usize {
         ((g[0] * self.dims[1] + g[1]) * self.dims[2] + g[2]) as usize
     }
 
@@ -310,7 +359,7 @@ struct CandidateLists {
 
 impl CandidateLists {
     fn new(points: &[Point3], lo: [f32; 3], hi: [f32; 3], cell: f32, tree: &ModelTree) -> Self {
-        let grid = Grid::new(lo, hi, cell, 0.0);
+        let grid = Grid::new(lo, hi, cell, 0.0, MAX_MODEL_CELLS);
         let (cell, dims, count) = (grid.cell, grid.dims, grid.count());
         let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
         let band = LIST_BAND_CELLS * cell as f64;
@@ -380,46 +429,21 @@ impl CandidateLists {
 impl CellIndex {
     fn new(points: &[Point3], spacing: f32, tree: &ModelTree) -> Self {
         let cell = CELL_SPACINGS * spacing;
-        let mut lo = [f32::INFINITY; 3];
-        let mut hi = [f32::NEG_INFINITY; 3];
-        for p in points {
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-        }
-        if points.is_empty() {
-            (lo, hi) = ([0.0; 3], [0.0; 3]);
-        }
+        let (lo, hi) = bounds(points);
         let diagonal = (0..3)
             .map(|a| ((hi[a] - lo[a]) as f64).powi(2))
             .sum::<f64>()
             .sqrt();
         let margin = MARGIN_DIAGONALS * diagonal;
-        let grid = Grid::new(lo, hi, cell, margin);
+        let grid = Grid::new(lo, hi, cell, margin, MAX_MODEL_CELLS);
         let count = grid.count();
-        let cell_of: Vec<usize> = points
-            .iter()
-            .map(|p| {
-                grid.flat(
-                    grid.coordinates(p)
-                        .expect("model points lie inside the grid"),
-                )
-            })
-            .collect();
-        let mut starts = vec![0u32; count + 1];
-        for &c in &cell_of {
-            starts[c + 1] += 1;
-        }
-        for c in 0..count {
-            starts[c + 1] += starts[c];
-        }
-        let mut next = starts.clone();
-        let mut sorted = vec![([0.0f32; 3], 0u32); points.len()];
-        for (i, (p, &c)) in points.iter().zip(&cell_of).enumerate() {
-            sorted[next[c] as usize] = (*p, i as u32);
-            next[c] += 1;
-        }
+        let (order, starts) = grid.bin(points);
+        debug_assert_eq!(
+            starts[count] as usize,
+            points.len(),
+            "model points lie inside the grid"
+        );
+        let sorted: Vec<([f32; 3], u32)> = order.iter().map(|&i| (points[i as usize], i)).collect();
         // From the cell's centre, minus half its diagonal (and some slack
         // for rounding), to the nearest model point.
         let half_diagonal = 0.5 * 3f64.sqrt() * grid.cell as f64;

@@ -7,19 +7,19 @@
 //!    cloud's surfaces typically have floats alone (flying pixels between a
 //!    foreground and a background surface);
 //! 2. Euclidean clustering at a radius tied to the point spacing (through a
-//!    grid of cells, not a kd-tree: no allocation per point, so ~0.3 ms for
-//!    2,048 points): surfaces separated by a depth jump (the
+//!    grid of cells, not a kd-tree: no allocation per point): surfaces
+//!    separated by a depth jump (the
 //!    object and the table or wall behind it) fall apart. The largest
 //!    component is the object; other components close to it are kept too
 //!    (an occluder in front can cut the object in two, self-occlusion can
 //!    split it at a depth jump), unless they lie in its *shadow*: beside it
 //!    in the image but behind it, the way a mask's spill onto the table or
 //!    wall behind an object does.
+//!
+//! All of it takes ~0.45 ms for 2,048 points (`cargo bench --bench search
+//! -- segment`; 0.54 ms median on the tuning set's rendered clouds).
 
-use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
-
-use crate::index::{sampled_spacings, ModelTree};
+use crate::index::{bounds, sampled_spacings, Grid, ModelTree};
 use crate::Point3;
 
 /// No component (a point in nobody's shadow).
@@ -114,10 +114,12 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // order does not matter: a component's root is its lowest index.
     let mut pairs: Vec<(u32, u32)> = Vec::with_capacity(32 * n);
     let mut counts = vec![0.0f64; n];
-    CellGrid::new(cloud, radius, false).for_each_pair_within(radius, None, |i, j| {
-        pairs.push((i as u32, j as u32));
-        counts[i] += 1.0;
-        counts[j] += 1.0;
+    CellGrid::new(cloud, radius).for_each_near(radius, None, |i, near| {
+        counts[i] += near.len() as f64;
+        for &j in near {
+            pairs.push((i as u32, j));
+            counts[j as usize] += 1.0;
+        }
     });
 
     // 1. Outliers: points with far fewer neighbours than is typical of the
@@ -135,18 +137,17 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
             components.union(i as usize, j as usize);
         }
     }
+    let root_of: Vec<usize> = (0..n).map(|i| components.find(i)).collect();
     let mut size = vec![0usize; n];
     let mut sum = vec![[0.0f64; 3]; n];
     for i in (0..n).filter(|&i| inlier[i]) {
-        let root = components.find(i);
-        size[root] += 1;
+        size[root_of[i]] += 1;
         for a in 0..3 {
-            sum[root][a] += cloud[i][a] as f64;
+            sum[root_of[i]][a] += cloud[i][a] as f64;
         }
     }
     // Components in the shadow of another (beside it in the image, behind
     // it) are background the mask picked up, whatever their size.
-    let root_of: Vec<usize> = (0..n).map(|i| components.find(i)).collect();
     let single = (0..n).filter(|&r| size[r] > 0).count() == 1;
     let shadower = if single {
         vec![NONE; n]
@@ -175,8 +176,7 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // group's hull corners in the image: the hull of the rest of the cloud
     // is the hull of the other groups' corners (a few dozen points each).
     let in_front = |i: usize| inlier[i] && cloud[i][2] > 0.0;
-    let mut members: Vec<usize> = (0..n).filter(|&i| inlier[i]).collect();
-    members.sort_by_key(|&i| (root_of[i], i));
+    let members = grouped_by(&root_of, |i| inlier[i]);
     let groups: Vec<&[usize]> = members
         .chunk_by(|&a, &b| root_of[a] == root_of[b])
         .collect();
@@ -196,21 +196,32 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
                 .collect()
         })
     };
+    // The hull of every group's corners is the hull of the others' for a
+    // group with no corner among its vertices.
+    let whole = std::cell::OnceCell::new();
+    let whole = || whole.get_or_init(|| convex_hull(corners().concat()));
     let mut lit_root = vec![false; n];
     for (g, mine) in groups.iter().enumerate() {
         let root = root_of[mine[0]];
         lit_root[root] =
             (shadowed_count[root] as f64) < settings.max_shadowed_fraction * size[root] as f64 || {
-                let others: Vec<[f64; 2]> = corners()
-                    .iter()
-                    .enumerate()
-                    .filter(|&(h, _)| h != g)
-                    .flat_map(|(_, c)| c.iter().copied())
-                    .collect();
-                let hull = convex_hull(others);
+                let outer = corners()[g].iter().any(|c| whole().contains(c));
+                let others_hull;
+                let hull = if outer {
+                    let others: Vec<[f64; 2]> = corners()
+                        .iter()
+                        .enumerate()
+                        .filter(|&(h, _)| h != g)
+                        .flat_map(|(_, c)| c.iter().copied())
+                        .collect();
+                    others_hull = convex_hull(others);
+                    &others_hull
+                } else {
+                    whole()
+                };
                 let inside = mine
                     .iter()
-                    .filter(|&&i| inside_convex(&hull, rays[i]))
+                    .filter(|&&i| inside_convex(hull, rays[i]))
                     .count();
                 10 * inside >= 9 * mine.len()
             };
@@ -286,11 +297,9 @@ fn in_shadow(
         .map(|&i| [cloud[i][0] / cloud[i][2], cloud[i][1] / cloud[i][2], 0.0])
         .collect();
     let roots: Vec<usize> = front.iter().map(|&i| root_of[i]).collect();
-    CellGrid::new(&rays, reach.max(1e-9), true).for_each_pair_within(
-        reach,
-        Some(&roots),
-        |a, b| {
-            let (i, j) = (front[a], front[b]);
+    CellGrid::new(&rays, reach.max(1e-9)).for_each_near(reach, Some(&roots), |a, near| {
+        for &b in near {
+            let (i, j) = (front[a], front[b as usize]);
             let behind = (cloud[i][2] - cloud[j][2]) as f64;
             if behind > gap {
                 if shadowed[i] == NONE {
@@ -299,157 +308,228 @@ fn in_shadow(
             } else if -behind > gap && shadowed[j] == NONE {
                 shadowed[j] = root_of[i];
             }
-        },
-    );
+        }
+    });
     shadowed
 }
 
 /// Median distance from a point to its nearest neighbour, over an evenly
-/// spread sample of at most 256 points (enough for a median).
+/// spread sample of at most 256 points (enough for a median), metres.
+///
+/// Looked up in a grid of cubes about as large as a surface's spacing would
+/// be if the points covered the cloud's two largest extents: a nearest
+/// neighbour within a cube's side is exact, and the median is exact when
+/// more than half the samples have one. Otherwise (a cloud along a line)
+/// the kd-tree answers.
 fn median_spacing(cloud: &[Point3]) -> f64 {
+    let (lo, hi) = bounds(cloud);
+    let mut extents: [f64; 3] = std::array::from_fn(|a| (hi[a] - lo[a]) as f64);
+    extents.sort_by(|a, b| b.total_cmp(a));
+    let guess = 1.5 * (extents[0] * extents[1] / cloud.len().max(1) as f64).sqrt();
+    if guess > 0.0 {
+        let grid = CellGrid::new(cloud, guess as f32);
+        let step = cloud.len().div_ceil(256).max(1);
+        let mut found: Vec<f64> = Vec::with_capacity(256);
+        let mut samples = 0;
+        for i in (0..cloud.len()).step_by(step) {
+            samples += 1;
+            if let Some(d2) = grid.nearest_squared_distance(i, &cloud[i]) {
+                found.push((d2 as f64).sqrt());
+            }
+        }
+        // `median_of`'s rank among all samples, the unfound ones last.
+        let rank = ((samples - 1) as f64 * 0.5).round() as usize;
+        if rank < found.len() {
+            return *found.select_nth_unstable_by(rank, f64::total_cmp).1;
+        }
+    }
     median_of(&sampled_spacings(&ModelTree::new_from_slice(cloud), cloud))
 }
 
-fn squared_distance(a: &Point3, b: &Point3) -> f32 {
-    (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)
-}
+/// Most cubes a [`CellGrid`] holds per point (a larger side beyond that):
+/// its cubes are scanned once, so an empty cube costs almost nothing.
+const CUBES_PER_POINT: f64 = 8.0;
 
-/// Points binned into cubes of side `cell`: every point within `cell` of
-/// another lies in the 27 cubes around its cube (9 squares for `flat`
-/// points, all with z = 0).
+/// Points binned into cubes of side `cell` (or a little more, see
+/// [`CUBES_PER_POINT`]): every point within `cell` of another lies in the
+/// 27 cubes around its cube (9 squares for `flat` points, all with z = 0).
+/// Cubes are numbered z fastest, so the three cubes of a column along z
+/// hold one contiguous run of points.
 struct CellGrid {
-    flat: bool,
+    grid: Grid,
     /// Point indices sorted by cube.
     order: Vec<u32>,
-    /// The points in that order (contiguous per cube).
-    sorted: Vec<Point3>,
-    /// Occupied cubes in sorted order, with their range of `order`.
-    cells: Vec<([i32; 3], u32, u32)>,
-    /// Cube → its place in `cells`.
-    ranges: HashMap<[i32; 3], u32, BuildHasherDefault<CellHasher>>,
-}
-
-/// A multiplicative hash for small integer keys: the default SipHash made
-/// the cube look-ups most of segmentation's time.
-#[derive(Default)]
-struct CellHasher(u64);
-
-impl Hasher for CellHasher {
-    fn write(&mut self, bytes: &[u8]) {
-        for chunk in bytes.chunks(4) {
-            let mut word = [0u8; 4];
-            word[..chunk.len()].copy_from_slice(chunk);
-            self.0 = (self.0.rotate_left(5) ^ u32::from_le_bytes(word) as u64)
-                .wrapping_mul(0x517c_c1b7_2722_0a95);
-        }
-    }
-
-    fn finish(&self) -> u64 {
-        self.0
-    }
+    /// The points' coordinates in that order (contiguous per cube).
+    xs: Vec<f32>,
+    ys: Vec<f32>,
+    zs: Vec<f32>,
+    /// Per cube, where its points start in `order` (one more entry at the end).
+    starts: Vec<u32>,
 }
 
 impl CellGrid {
-    fn new(points: &[Point3], cell: f32, flat: bool) -> Self {
-        let keys: Vec<[i32; 3]> = points
-            .iter()
-            .map(|p| p.map(|v| (v / cell).floor() as i32))
-            .collect();
-        let mut order: Vec<u32> = (0..points.len() as u32).collect();
-        order.sort_unstable_by_key(|&i| (keys[i as usize], i));
-        let mut cells = Vec::new();
-        let mut start = 0;
-        while start < order.len() {
-            let key = keys[order[start] as usize];
-            let mut end = start + 1;
-            while end < order.len() && keys[order[end] as usize] == key {
-                end += 1;
-            }
-            cells.push((key, start as u32, end as u32));
-            start = end;
-        }
-        let ranges = cells
-            .iter()
-            .enumerate()
-            .map(|(k, &(key, _, _))| (key, k as u32))
-            .collect();
+    fn new(points: &[Point3], cell: f32) -> Self {
+        let (lo, hi) = bounds(points);
+        let max_cubes = (CUBES_PER_POINT * points.len() as f64).max(4096.0);
+        // A margin of a hundredth of a cube: a point on the box's far faces
+        // stays inside whatever the rounding.
+        let grid = Grid::new(lo, hi, cell, 0.01 * cell as f64, max_cubes);
+        let (order, starts) = grid.bin(points);
+        let axis = |a: usize| order.iter().map(|&i| points[i as usize][a]).collect();
         Self {
-            flat,
-            sorted: order.iter().map(|&i| points[i as usize]).collect(),
+            grid,
+            xs: axis(0),
+            ys: axis(1),
+            zs: axis(2),
             order,
-            cells,
-            ranges,
+            starts,
         }
     }
 
-    /// Calls `visit(i, j)` once for every unordered pair of distinct points
-    /// at most `within` apart (no more than a cube's side) in the same or
-    /// neighbouring cubes, cube by cube in a fixed order: the
-    /// pairs within a cube, then those with each neighbouring cube that
-    /// sorts after it (so no pair is seen twice). With `labels` (one per
-    /// point), only pairs of differently labelled points, and cubes whose
-    /// points all share one label are not paired with each other: most of
-    /// a cloud is one component, and its pairs are skipped wholesale.
-    fn for_each_pair_within(
-        &self,
-        within: f32,
-        labels: Option<&[usize]>,
-        mut visit: impl FnMut(usize, usize),
-    ) {
-        let limit = within * within;
-        /// A cube whose points carry different labels.
-        const MIXED: usize = usize::MAX;
-        let label_of = |range: (u32, u32)| -> Option<usize> {
-            let labels = labels?;
-            let mine = &self.order[range.0 as usize..range.1 as usize];
-            let first = labels[mine[0] as usize];
-            Some(if mine.iter().all(|&i| labels[i as usize] == first) {
-                first
-            } else {
-                MIXED
-            })
-        };
-        let cube_labels: Vec<Option<usize>> = self
-            .cells
-            .iter()
-            .map(|&(_, a, b)| label_of((a, b)))
-            .collect();
-        let differ = |i: u32, j: u32| labels.is_none_or(|l| l[i as usize] != l[j as usize]);
-        let (order, sorted) = (&self.order, &self.sorted);
-        let depth = if self.flat { 0 } else { 1 };
-        let mut after: Vec<(u32, u32)> = Vec::with_capacity(13);
-        for (&(c, a, b), &label) in self.cells.iter().zip(&cube_labels) {
-            let pure = label.is_some_and(|l| l != MIXED);
-            after.clear();
-            for dx in -1..=1 {
-                for dy in -1..=1 {
-                    for dz in -depth..=depth {
-                        let key = [c[0] + dx, c[1] + dy, c[2] + dz];
-                        if key > c {
-                            if let Some(&k) = self.ranges.get(&key) {
-                                let (_, ra, rb) = self.cells[k as usize];
-                                if !pure || cube_labels[k as usize] != label {
-                                    after.push((ra, rb));
-                                }
-                            }
-                        }
+    /// The squared distance from `p` (point `i` of the binned points) to
+    /// its nearest other point, when that lies within a cube's side.
+    fn nearest_squared_distance(&self, i: usize, p: &Point3) -> Option<f32> {
+        let g = self.grid.coordinates(p)?;
+        let dims = self.grid.dims;
+        let limit = self.grid.cell * self.grid.cell;
+        let mut best = f32::INFINITY;
+        for x in (g[0] - 1).max(0)..=(g[0] + 1).min(dims[0] - 1) {
+            for y in (g[1] - 1).max(0)..=(g[1] + 1).min(dims[1] - 1) {
+                let first = self.grid.flat([x, y, (g[2] - 1).max(0)]);
+                let last = self.grid.flat([x, y, (g[2] + 1).min(dims[2] - 1)]);
+                let (ra, rb) = (self.starts[first] as usize, self.starts[last + 1] as usize);
+                for k in ra..rb {
+                    let d = (self.xs[k] - p[0]).powi(2)
+                        + (self.ys[k] - p[1]).powi(2)
+                        + (self.zs[k] - p[2]).powi(2);
+                    if d < best && self.order[k] as usize != i {
+                        best = d;
                     }
                 }
             }
-            for x in a as usize..b as usize {
-                let (i, p) = (order[x], &sorted[x]);
-                if !pure {
-                    for y in x + 1..b as usize {
-                        if squared_distance(p, &sorted[y]) <= limit && differ(i, order[y]) {
-                            visit(i as usize, order[y] as usize);
-                        }
+        }
+        (best <= limit).then_some(best)
+    }
+
+    /// Visits every unordered pair of distinct points at most `within`
+    /// apart (no more than a cube's side) once, in batches: `visit(i, near)`
+    /// gets point `i` and some of its partners `near`. Cube by cube in a
+    /// fixed order: the pairs within a cube, then those with each run of
+    /// neighbouring cubes that sort after it (so no pair is seen twice).
+    /// With `labels` (one per point), only pairs of differently labelled
+    /// points, and cubes whose points all share one label are not paired
+    /// with each other: most of a cloud is one component, and its pairs are
+    /// skipped wholesale.
+    fn for_each_near(
+        &self,
+        within: f32,
+        labels: Option<&[usize]>,
+        mut visit: impl FnMut(usize, &[u32]),
+    ) {
+        let limit = within * within;
+        let (order, starts) = (&self.order, &self.starts);
+        let dims = self.grid.dims;
+        let count = self.grid.count();
+        /// A cube without points.
+        const EMPTY: usize = usize::MAX;
+        /// A cube whose points carry different labels (or no labels given).
+        const MIXED: usize = usize::MAX - 1;
+        let cube_labels: Vec<usize> = match labels {
+            None => Vec::new(),
+            Some(labels) => (0..count)
+                .map(|c| {
+                    let mine = &order[starts[c] as usize..starts[c + 1] as usize];
+                    match mine.first().map(|&i| labels[i as usize]) {
+                        None => EMPTY,
+                        Some(first) if mine.iter().all(|&i| labels[i as usize] == first) => first,
+                        Some(_) => MIXED,
                     }
+                })
+                .collect(),
+        };
+        let label_of = |c: usize| cube_labels.get(c).copied().unwrap_or(MIXED);
+        let differ = |i: u32, j: u32| labels.is_none_or(|l| l[i as usize] != l[j as usize]);
+        // The neighbouring cubes that sort after a cube (lexicographically by
+        // offset), as runs along z: (0, 0, +1), then the columns (0, +1),
+        // (+1, −1), (+1, 0) and (+1, +1), each from z − 1 to z + 1.
+        let columns: [([i32; 2], i32, i32); 5] = [
+            ([0, 0], 1, 1),
+            ([0, 1], -1, 1),
+            ([1, -1], -1, 1),
+            ([1, 0], -1, 1),
+            ([1, 1], -1, 1),
+        ];
+        let mut runs: Vec<(usize, usize)> = Vec::with_capacity(columns.len());
+        let mut near: Vec<u32> = Vec::new();
+        for c in 0..count {
+            let (a, b) = (starts[c] as usize, starts[c + 1] as usize);
+            if a == b {
+                continue;
+            }
+            let label = label_of(c);
+            let pure = label != MIXED;
+            let g = [
+                c as i32 / (dims[1] * dims[2]),
+                (c as i32 / dims[2]) % dims[1],
+                c as i32 % dims[2],
+            ];
+            runs.clear();
+            // A mixed cube's own points pair among themselves and with the
+            // next cube along z, which follows them: one run.
+            let up = if g[2] + 1 < dims[2] { c + 1 } else { c };
+            let own = (!pure).then_some((a, starts[up + 1] as usize));
+            for &([dx, dy], z0, z1) in &columns[own.map_or(0, |_| 1)..] {
+                let (x, y) = (g[0] + dx, g[1] + dy);
+                let (z0, z1) = ((g[2] + z0).max(0), (g[2] + z1).min(dims[2] - 1));
+                if x < 0 || x >= dims[0] || y < 0 || y >= dims[1] || z0 > z1 {
+                    continue;
                 }
-                for &(ra, rb) in &after {
-                    for y in ra as usize..rb as usize {
-                        if squared_distance(p, &sorted[y]) <= limit && differ(i, order[y]) {
-                            visit(i as usize, order[y] as usize);
-                        }
+                let (first, last) = (self.grid.flat([x, y, z0]), self.grid.flat([x, y, z1]));
+                let (ra, rb) = (starts[first] as usize, starts[last + 1] as usize);
+                // A pure cube is not paired with a run of cubes all of its label.
+                if ra < rb
+                    && !(pure
+                        && (first..=last)
+                            .all(|k| matches!(label_of(k), l if l == label || l == EMPTY)))
+                {
+                    runs.push((ra, rb));
+                }
+            }
+            // Pairs within the cube and the next (none within a pure cube),
+            // then with each run; the near ones gathered without a branch per
+            // point (whether one is near is a coin toss).
+            for (r, &(ra, rb)) in own.iter().chain(&runs).enumerate() {
+                let (rx, ry, rz, ro) = (
+                    &self.xs[ra..rb],
+                    &self.ys[ra..rb],
+                    &self.zs[ra..rb],
+                    &order[ra..rb],
+                );
+                if near.len() < rb - ra {
+                    near.resize(rb - ra, 0);
+                }
+                let mine = order[a..b]
+                    .iter()
+                    .zip(&self.xs[a..b])
+                    .zip(&self.ys[a..b])
+                    .zip(&self.zs[a..b]);
+                for (x, (((&i, &px), &py), &pz)) in mine.enumerate() {
+                    // Within the cube, only the points after this one.
+                    let from = if r == 0 && own.is_some() { x + 1 } else { 0 };
+                    let mut found = 0;
+                    let run = rx[from..]
+                        .iter()
+                        .zip(&ry[from..])
+                        .zip(&rz[from..])
+                        .zip(&ro[from..]);
+                    for (((&qx, &qy), &qz), &j) in run {
+                        let d =
+                            (qx - px) * (qx - px) + (qy - py) * (qy - py) + (qz - pz) * (qz - pz);
+                        near[found] = j;
+                        found += ((d <= limit) & differ(i, j)) as usize;
+                    }
+                    if found > 0 {
+                        visit(i as usize, &near[..found]);
                     }
                 }
             }
@@ -457,9 +537,67 @@ impl CellGrid {
     }
 }
 
+/// The indices `i` for which `chosen(i)`, ordered by `label[i]` (labels
+/// below `label.len()`), ascending within a label (a counting sort).
+fn grouped_by(label: &[usize], chosen: impl Fn(usize) -> bool) -> Vec<usize> {
+    let mut starts = vec![0usize; label.len() + 1];
+    for i in (0..label.len()).filter(|&i| chosen(i)) {
+        starts[label[i] + 1] += 1;
+    }
+    for l in 0..label.len() {
+        starts[l + 1] += starts[l];
+    }
+    let mut grouped = vec![0usize; starts[label.len()]];
+    for i in (0..label.len()).filter(|&i| chosen(i)) {
+        grouped[starts[label[i]]] = i;
+        starts[label[i]] += 1;
+    }
+    grouped
+}
+
 /// Convex hull of 2-D points, counter-clockwise (Andrew's monotone chain).
+/// Points strictly inside the octagon of the extreme points in eight
+/// directions cannot be corners and are dropped before sorting (Akl and
+/// Toussaint): most of a dense blob.
 fn convex_hull(mut points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
-    points.sort_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
+    if points.len() > 32 {
+        let directions: [[f64; 2]; 8] = [
+            [1.0, 0.0],
+            [1.0, 1.0],
+            [0.0, 1.0],
+            [-1.0, 1.0],
+            [-1.0, 0.0],
+            [-1.0, -1.0],
+            [0.0, -1.0],
+            [1.0, -1.0],
+        ];
+        let mut best = [f64::NEG_INFINITY; 8];
+        let mut octagon = [[0.0f64; 2]; 8];
+        for p in &points {
+            for (k, d) in directions.iter().enumerate() {
+                let reach = d[0] * p[0] + d[1] * p[1];
+                if reach > best[k] {
+                    best[k] = reach;
+                    octagon[k] = *p;
+                }
+            }
+        }
+        let mut octagon = octagon.to_vec();
+        octagon.dedup();
+        if octagon.len() > 1 && octagon.first() == octagon.last() {
+            octagon.pop();
+        }
+        if octagon.len() >= 3 {
+            let strictly_inside = |p: &[f64; 2]| {
+                (0..octagon.len()).all(|k| {
+                    let (a, b) = (octagon[k], octagon[(k + 1) % octagon.len()]);
+                    (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]) > 0.0
+                })
+            };
+            points.retain(|p| !strictly_inside(p));
+        }
+    }
+    points.sort_unstable_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
     points.dedup();
     if points.len() < 3 {
         return points;
@@ -700,5 +838,93 @@ mod tests {
             segment(&cloud, 0.1, &SegmentSettings::default()).keep,
             vec![true; 10]
         );
+    }
+
+    /// Points on the faces of a 10 × 6 × 4 cm box at 0.6 m, at random.
+    fn random_box_surface(count: usize, seed: u64) -> Vec<Point3> {
+        let mut rng = crate::rng::SplitMix64::new(seed);
+        let half = [0.05f32, 0.03, 0.02];
+        (0..count)
+            .map(|_| {
+                let axis = (rng.next_f64() * 3.0) as usize % 3;
+                let mut p: Point3 =
+                    std::array::from_fn(|k| (rng.next_f64() as f32 * 2.0 - 1.0) * half[k]);
+                p[axis] = if rng.next_f64() < 0.5 {
+                    -half[axis]
+                } else {
+                    half[axis]
+                };
+                p[2] += 0.6;
+                p
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_grid_finds_every_pair_within_reach_once() {
+        let cloud = random_box_surface(600, 3);
+        let within = 0.006f32;
+        let labels: Vec<usize> = (0..cloud.len())
+            .map(|i| (cloud[i][0] > 0.01) as usize)
+            .collect();
+        for labels in [None, Some(&labels[..])] {
+            let mut found = Vec::new();
+            CellGrid::new(&cloud, within).for_each_near(within, labels, |i, near| {
+                found.extend(near.iter().map(|&j| (i.min(j as usize), i.max(j as usize))));
+            });
+            let mut expected = Vec::new();
+            for i in 0..cloud.len() {
+                for j in i + 1..cloud.len() {
+                    let d: f32 = (0..3).map(|a| (cloud[i][a] - cloud[j][a]).powi(2)).sum();
+                    if d <= within * within && labels.is_none_or(|l| l[i] != l[j]) {
+                        expected.push((i, j));
+                    }
+                }
+            }
+            let count = found.len();
+            found.sort_unstable();
+            found.dedup();
+            assert_eq!(found.len(), count, "a pair was visited twice");
+            assert_eq!(found, expected);
+        }
+    }
+
+    #[test]
+    fn the_grid_median_spacing_is_the_kd_trees() {
+        let line: Vec<Point3> = (0..300).map(|i| [0.001 * i as f32, 0.0, 0.5]).collect();
+        let plane = plane(0.6, 0.002, (-0.05, 0.05), (-0.05, 0.05), |_, _| false);
+        for cloud in [random_box_surface(2048, 5), plane, line] {
+            let tree = median_of(&sampled_spacings(
+                &ModelTree::new_from_slice(&cloud),
+                &cloud,
+            ));
+            assert_eq!(median_spacing(&cloud), tree);
+        }
+    }
+
+    #[test]
+    fn the_hull_of_a_blob_holds_every_point_and_only_its_corners() {
+        let mut rng = crate::rng::SplitMix64::new(11);
+        let blob: Vec<[f64; 2]> = (0..500)
+            .map(|_| {
+                let (r, a) = (
+                    rng.next_f64().sqrt(),
+                    rng.next_f64() * std::f64::consts::TAU,
+                );
+                [r * a.cos(), 0.5 * r * a.sin()]
+            })
+            .collect();
+        let hull = convex_hull(blob.clone());
+        assert!(hull.len() >= 8 && hull.iter().all(|c| blob.contains(c)));
+        assert!(blob.iter().all(|&p| inside_convex(&hull, p)));
+        // Every corner is strictly convex (a left turn).
+        for k in 0..hull.len() {
+            let (o, a, b) = (
+                hull[k],
+                hull[(k + 1) % hull.len()],
+                hull[(k + 2) % hull.len()],
+            );
+            assert!((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]) > 0.0);
+        }
     }
 }
