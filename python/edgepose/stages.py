@@ -311,11 +311,14 @@ def pose_distances(codebook: Codebook, rotations: np.ndarray, translations: np.n
     camera) from pose ``ref``, on the model's first ``RIVAL_POINTS``
     farthest-point samples, metres."""
     points = codebook.model.points[:RIVAL_POINTS].astype(np.float64)
-    moved = np.einsum("hij,nj->hni", rotations, points) + translations[:, None, :]
+    moved = points @ rotations.transpose(0, 2, 1) + translations[:, None, :]
     if not codebook.symmetry.symmetric:
         return np.linalg.norm(moved - moved[ref], axis=2).mean(axis=1)
-    gaps = np.linalg.norm(moved[:, :, None, :] - moved[ref][None, None, :, :], axis=3)
-    return gaps.min(axis=2).mean(axis=1)
+    # Squared distances from every moved point to every point of pose ref:
+    # |a|² + |b|² − 2 a·b, as one batched product (no (H, N, N, 3) array).
+    target = moved[ref]
+    squared = (moved**2).sum(axis=2)[:, :, None] + (target**2).sum(axis=1)[None, None, :] - 2.0 * moved @ target.T
+    return np.sqrt(np.maximum(squared.min(axis=2), 0.0)).mean(axis=1)
 
 
 def near_the_cloud(

@@ -158,12 +158,12 @@ fn bench_search(c: &mut Criterion) {
         b.iter(|| align_translations(&index, &keypoints, &candidates, 3, 0.012))
     });
     // Point pairs: the model's table (built once per codebook, on the first
-    // doubtful view), and the votes of 192 of the seen points.
+    // doubtful view), and the votes of 160 of the seen points (the default).
     group.bench_function("pair_table_384_model_points", |b| {
         b.iter(|| PairTable::new(index.points(), index.normals()))
     });
     index.pair_table();
-    group.bench_function("pair_poses_192_points_stride_2", |b| {
+    group.bench_function("pair_poses_160_points_stride_2", |b| {
         b.iter(|| index.pair_poses(&seen, &PairSettings::default()))
     });
     group.finish();

@@ -68,7 +68,7 @@ pub struct PairSettings {
 impl Default for PairSettings {
     fn default() -> Self {
         Self {
-            scene_points: 192,
+            scene_points: 160,
             reference_stride: 2,
             normal_neighbours: 12,
             peaks_per_reference: 2,
