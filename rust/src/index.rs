@@ -254,6 +254,31 @@ pub(crate) fn bounds(points: &[Point3]) -> ([f32; 3], [f32; 3]) {
     (lo, hi)
 }
 
+/// The indices `0..keys.len()` sorted by key, stably (a counting sort), and
+/// per bucket where its run starts in that order (`buckets + 1` entries:
+/// bucket `k` holds `order[starts[k]..starts[k + 1]]`). Keys of `buckets`
+/// or more come last, in no bucket.
+pub(crate) fn counting_sort(keys: &[usize], buckets: usize) -> (Vec<u32>, Vec<u32>) {
+    let mut starts = vec![0u32; buckets + 2];
+    for &k in keys {
+        starts[k.min(buckets) + 1] += 1;
+    }
+    let mut total = 0;
+    for start in starts.iter_mut() {
+        total += *start;
+        *start = total;
+    }
+    let mut next = starts.clone();
+    let mut order = vec![0u32; keys.len()];
+    for (i, &k) in keys.iter().enumerate() {
+        let k = k.min(buckets);
+        order[next[k] as usize] = i as u32;
+        next[k] += 1;
+    }
+    starts.truncate(buckets + 1);
+    (order, starts)
+}
+
 /// A uniform grid of cubes over the box `[lo − margin, hi + margin]`
 /// (metres): which cell holds a point, and where a cell's centre lies. At
 /// most ~`max_cells` cells: the side grows when the requested one would give more.
@@ -283,33 +308,16 @@ impl Grid {
         self.dims.iter().map(|&d| d as usize).product()
     }
 
-    /// The indices of `points` sorted by cell (a stable counting sort), and
-    /// per cell where its run starts in that order (`count() + 1` entries:
-    /// cell `c` holds `order[starts[c]..starts[c + 1]]`). Points outside the
-    /// grid (or not finite) come last, in no cell.
+    /// The indices of `points` sorted by cell and per cell where its run
+    /// starts (see [`counting_sort`]). Points outside the grid (or not
+    /// finite) come last, in no cell.
     pub(crate) fn bin(&self, points: &[Point3]) -> (Vec<u32>, Vec<u32>) {
         let count = self.count();
         let cell_of: Vec<usize> = points
             .iter()
             .map(|p| self.coordinates(p).map_or(count, |g| self.flat(g)))
             .collect();
-        let mut starts = vec![0u32; count + 2];
-        for &c in &cell_of {
-            starts[c + 1] += 1;
-        }
-        let mut total = 0;
-        for start in starts.iter_mut() {
-            total += *start;
-            *start = total;
-        }
-        let mut next = starts.clone();
-        let mut order = vec![0u32; points.len()];
-        for (i, &c) in cell_of.iter().enumerate() {
-            order[next[c] as usize] = i as u32;
-            next[c] += 1;
-        }
-        starts.truncate(count + 1);
-        (order, starts)
+        counting_sort(&cell_of, count)
     }
 
     /// The cell holding `p`, or None outside the grid.

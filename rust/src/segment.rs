@@ -19,7 +19,7 @@
 //! All of it takes ~0.45 ms for 2,048 points (`cargo bench --bench search
 //! -- segment`; 0.54 ms median on the tuning set's rendered clouds).
 
-use crate::index::{bounds, sampled_spacings, Grid, ModelTree};
+use crate::index::{bounds, counting_sort, sampled_spacings, Grid, ModelTree};
 use crate::Point3;
 
 /// No component (a point in nobody's shadow).
@@ -538,21 +538,17 @@ impl CellGrid {
 }
 
 /// The indices `i` for which `chosen(i)`, ordered by `label[i]` (labels
-/// below `label.len()`), ascending within a label (a counting sort).
+/// below `label.len()`), ascending within a label.
 fn grouped_by(label: &[usize], chosen: impl Fn(usize) -> bool) -> Vec<usize> {
-    let mut starts = vec![0usize; label.len() + 1];
-    for i in (0..label.len()).filter(|&i| chosen(i)) {
-        starts[label[i] + 1] += 1;
-    }
-    for l in 0..label.len() {
-        starts[l + 1] += starts[l];
-    }
-    let mut grouped = vec![0usize; starts[label.len()]];
-    for i in (0..label.len()).filter(|&i| chosen(i)) {
-        grouped[starts[label[i]]] = i;
-        starts[label[i]] += 1;
-    }
-    grouped
+    let n = label.len();
+    let keys: Vec<usize> = (0..n)
+        .map(|i| if chosen(i) { label[i] } else { n })
+        .collect();
+    let (order, starts) = counting_sort(&keys, n);
+    order[..starts[n] as usize]
+        .iter()
+        .map(|&i| i as usize)
+        .collect()
 }
 
 /// Convex hull of 2-D points, counter-clockwise (Andrew's monotone chain).
