@@ -139,7 +139,7 @@ def report(name: str, p: np.ndarray, y: np.ndarray) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--views", type=int, default=5, help="views per object and stress level")
+    parser.add_argument("--views", type=int, default=8, help="views per object and stress level")
     parser.add_argument("--procedural", type=int, default=16, help="procedural objects")
     parser.add_argument("--blob-every", type=int, default=40, help="every n-th blob")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
@@ -168,9 +168,16 @@ def main() -> None:
         levels = np.array([v for p in parts for v in p["level"]])
         correct = np.array([c for p in parts for c in p["correct"]], dtype=bool)
         evidence = np.array([e for p in parts for e in p["evidence"]], dtype=np.float64)
+        error = np.array([e for p in parts for e in p["error"]], dtype=np.float64)
         args.save_data.parent.mkdir(parents=True, exist_ok=True)
         np.savez(
-            args.save_data, object=objects, level=levels, correct=correct, evidence=evidence, features=FEATURE_NAMES
+            args.save_data,
+            object=objects,
+            level=levels,
+            correct=correct,
+            evidence=evidence,
+            error=error,
+            features=FEATURE_NAMES,
         )
         print(f"evidence saved to {args.save_data} ({time.perf_counter() - t0:.0f} s)")
 

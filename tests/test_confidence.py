@@ -48,8 +48,8 @@ def test_a_turned_pose_is_less_trusted_than_the_right_one(drill):
     from edgepose.confidence import evidence_of
 
     model = edgepose.encoder.default_encoder().confidence
-    good = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2, 0.2)
-    bad = evidence_of(0.6, 0.8, 0.8, 0.2, 0.7, 2, True, 0.0, 0.4, 1.2, 0.2)
+    good = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2, 0.2, 0.5)
+    bad = evidence_of(0.6, 0.8, 0.8, 0.2, 0.7, 2, True, 0.0, 0.4, 1.2, 0.2, 0.0)
     assert model.probability(good) > 0.9 and model.probability(bad) < 0.2
 
 
@@ -90,3 +90,43 @@ def test_acceptance_at_a_threshold():
     assert a.correct_kept == pytest.approx(2 / 3) and a.wrong_accepted == pytest.approx(1 / 2)
     with pytest.raises(ValueError, match="finite"):
         acceptance([np.nan], [True])
+
+
+def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
+    """The drill (asymmetric) seen whole: its true pose explains the view
+    clearly better than any half turn about a principal axis (margin > 0),
+    and each half-turned pose is beaten by the true one (margin < 0)."""
+    from edgepose.settings import DEFAULT_SETTINGS as S
+    from edgepose.stages import flip_margin, prepare_query, score_poses
+
+    mesh, codebook = drill
+    view = render_view(mesh, seed=4)
+    query = prepare_query(view.cloud, codebook)
+    model = codebook.model
+
+    def margin(R: np.ndarray, t: np.ndarray) -> float:
+        observed = query.sample(S.hypothesis_points, S.subsample_seed)
+        scores = score_poses(
+            query, codebook, observed, R[None], t[None], S.hypothesis_inlier_distance * model.diameter, 0.0
+        )
+        return flip_margin(query, codebook, R, t, scores, S)
+
+    R = view.T_cam_obj[:3, :3]
+    t = view.T_cam_obj[:3, 3] + R @ model.centre  # model frame -> camera
+    assert margin(R, t) > 0.1
+    centroid, axes = model.principal_axes
+    assert np.allclose(axes.T @ axes, np.eye(3), atol=1e-9)
+    for a in axes.T:
+        flip = 2.0 * np.outer(a, a) - np.eye(3)
+        assert margin(R @ flip, t + R @ centroid - R @ flip @ centroid) < 0.0
+
+
+def test_a_symmetric_objects_half_turns_are_no_rivals():
+    """A box's half turns about its axes are its symmetries: the same pose,
+    so no flip competes with the estimate (margin 1)."""
+    box = trimesh.creation.box([0.06, 0.1, 0.16])
+    codebook = edgepose.build_codebook(box)
+    assert codebook.symmetry.symmetric
+    for seed in (1, 2):
+        pose = edgepose.estimate(render_view(box, seed=seed).cloud, codebook)
+        assert pose.evidence["flip_margin"] == 1.0

@@ -39,6 +39,9 @@ FEATURES: dict[str, str] = {
     "observed_extent": "diagonal of the kept observed points' bounding box over d (how much of the object is seen)",
     "translation_constraint": "smallest eigenvalue of the mean n n^T of the model normals nearest to the observed "
     "points explained within 0.02 d: 0 when the pose could slide along the seen surface, up to 1/3",
+    "flip_margin": "inlier fraction minus free-space violation of the pose minus that of the pose turned half "
+    "about a principal axis of the model and moved onto the view (the best such, if a different pose); "
+    "1 when none is",
 }
 
 
@@ -85,6 +88,7 @@ TERMS: dict[str, tuple[Callable[[float], float], ...]] = {
     "off_silhouette": (_value, _log_share),
     "observed_extent": (_value, _capped_extent),
     "translation_constraint": (_value, _log_share),
+    "flip_margin": (_value, _clipped_margin, _no_rival),
 }
 
 
@@ -162,6 +166,7 @@ def evidence_of(
     off_silhouette: float,
     observed_extent: float,
     translation_constraint: float,
+    flip_margin: float,
 ) -> dict[str, float]:
     """The evidence (:data:`FEATURES`) as a dict of floats."""
     return {
@@ -176,4 +181,5 @@ def evidence_of(
         "off_silhouette": float(off_silhouette),
         "observed_extent": float(observed_extent),
         "translation_constraint": float(translation_constraint),
+        "flip_margin": float(flip_margin),
     }

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Union
 
@@ -90,6 +91,16 @@ class StandardModel:
     def radius(self) -> float:
         """Distance from the centre to the farthest model point, metres."""
         return 1.0 / self.scale
+
+    @cached_property
+    def principal_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The points' centroid (3,) and their principal axes (3, 3), one per
+        column, model frame: the axes an elongated or flat object is most
+        easily mistaken by a half turn about."""
+        points = self.points.astype(np.float64)
+        centroid = points.mean(axis=0)
+        _, axes = np.linalg.eigh(np.cov((points - centroid).T))
+        return centroid, axes
 
 
 def detect_scale(extent: float) -> float:

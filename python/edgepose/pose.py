@@ -27,6 +27,7 @@ from edgepose.stages import (
     Query,
     Refined,
     candidate_poses,
+    flip_margin,
     nearest_views,
     pair_poses,
     prepare_query,
@@ -245,6 +246,7 @@ def pose_from_query(
             off_silhouette=loose.off_silhouette[0],
             observed_extent=observed_extent,
             translation_constraint=tight.translation_constraint[0],
+            flip_margin=flip_margin(query, codebook, result.R, result.t, tight, settings),
         )
         return evidence, encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
 

@@ -182,6 +182,51 @@ def nearest_views(codebook: Codebook, rotations: np.ndarray, translations: np.nd
     return np.argmax(towards_camera @ codebook.viewpoints.directions.T, axis=1).astype(np.intp)
 
 
+def flip_margin(
+    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, scores: PoseScores, settings: EstimateSettings
+) -> float:
+    """How much better pose ``(R, t)`` (model frame → camera, metres), with
+    its ``scores`` on the hypotheses' observed points, explains the view
+    than itself turned half about each of the model's principal axes and
+    moved onto the view: the mistakes a search makes on a near-symmetric
+    view (a banana end for end, a box whose telling details are hidden).
+    Inlier fraction minus free-space violation, the pose's minus the best
+    turned one's that is a different pose (symmetries aside); 1 when none
+    is. Near 0 or below when the view cannot tell the object from its flip."""
+    d = codebook.model.diameter
+    centroid, axes = codebook.model.principal_axes
+    flips = 2.0 * axes.T[:, :, None] * axes.T[:, None, :] - np.eye(3)  # half turns: 2 a aᵀ − I
+    rotations = R @ flips
+    # Each turned pose is moved (not turned) so the query's keypoints land on
+    # the model, as the candidates are: ~0.05 ms against ~0.6 ms for 5 ICP
+    # iterations, for part of their gain (tuning set, AUROC of this margin
+    # alone: unmoved 0.85, moved 0.87, settled by ICP 0.90).
+    translations = codebook.index.align_translations(
+        query.keypoints,
+        rotations,
+        t + R @ centroid - rotations @ centroid,
+        settings.align_iterations,
+        settings.candidate_inlier_distance * d,
+    )
+    rivals = pose_distances(codebook, np.concatenate([R[None], rotations]), np.concatenate([t[None], translations]), 0)
+    rivals = rivals[1:] > RIVAL_DISTANCE * d
+    if not rivals.any():
+        return 1.0
+    observed = query.sample(settings.hypothesis_points, settings.subsample_seed)
+    turned = score_poses(
+        query,
+        codebook,
+        observed,
+        rotations[rivals],
+        translations[rivals],
+        settings.hypothesis_inlier_distance * d,
+        0.0,
+        settings,
+    )
+    net = scores.inlier_fraction[0] - scores.free_space_violation[0]
+    return float(net - (turned.inlier_fraction - turned.free_space_violation).max())
+
+
 def score_poses(
     query: Query,
     codebook: Codebook,
