@@ -98,6 +98,7 @@ def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
     and each half-turned pose is beaten by the true one (margin < 0)."""
     from edgepose.settings import DEFAULT_SETTINGS as S
     from edgepose.stages import flip_margin, prepare_query, score_poses
+    from edgepose.views import rotation_about
 
     mesh, codebook = drill
     view = render_view(mesh, seed=4)
@@ -117,7 +118,7 @@ def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
     centroid, axes = model.principal_axes
     assert np.allclose(axes.T @ axes, np.eye(3), atol=1e-9)
     for a in axes.T:
-        flip = 2.0 * np.outer(a, a) - np.eye(3)
+        flip = rotation_about(a, np.pi)
         assert margin(R @ flip, t + R @ centroid - R @ flip @ centroid) < 0.0
 
 

@@ -226,9 +226,12 @@ def pose_from_query(
     pairs = settings.pair_poses if refine else 0
     observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
 
-    def judged(found: Candidates, result: Refined, loose: PoseScores, searches: int) -> tuple[dict, float]:
+    def judged(
+        found: Candidates, result: Refined, loose: PoseScores, searches: int, flips: float | None = None
+    ) -> tuple[dict, float]:
         """The evidence and confidence (NaN without a confidence model) of
-        ``result``, a search's pose from the candidates ``found``."""
+        ``result``, a search's pose from the candidates ``found``; ``flips``:
+        its flip margin when already known (a second search kept the first pose)."""
         tight = (
             result.scores
             if result.refined
@@ -246,7 +249,7 @@ def pose_from_query(
             off_silhouette=loose.off_silhouette[0],
             observed_extent=observed_extent,
             translation_constraint=tight.translation_constraint[0],
-            flip_margin=flip_margin(query, codebook, result.R, result.t, tight, settings),
+            flip_margin=flip_margin(query, codebook, result.R, result.t, tight, settings) if flips is None else flips,
         )
         return evidence, encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
 
@@ -268,10 +271,11 @@ def pose_from_query(
             query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
         )
         searches = 2
+        flips: float | None = evidence["flip_margin"]  # the first pose's, unless the wider search beats it
         if explains_more(wider, result):
-            result, loose = wider, loose_scores(query, codebook, wider, settings)
+            result, loose, flips = wider, loose_scores(query, codebook, wider, settings), None
         laps("refine_hypotheses")
-        evidence, confidence = judged(found, result, loose, searches)
+        evidence, confidence = judged(found, result, loose, searches, flips)
         laps("confidence")
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
