@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import trimesh
 from edgepose import _core
-from edgepose.cloud import MIN_POINTS, as_cloud
+from edgepose.cloud import MIN_POINTS, as_cloud, clean_cloud
 from edgepose.errors import InternalError
 from edgepose.eval import pose_errors, render_view
 from safetensors.numpy import load_file
@@ -306,3 +306,45 @@ def test_bad_depth_images_and_intrinsics_raise_clear_errors():
         edgepose.cloud_from_depth(np.full((4, 5), "a"), K)
     cloud = edgepose.cloud_from_depth(depth, K)
     assert cloud.shape == (20, 3) and np.allclose(cloud[:, 2], 1.0)
+
+
+def test_depth_images_of_every_number_type_and_layout_give_the_same_points():
+    rng = np.random.default_rng(3)
+    metres = rng.uniform(0.4, 1.5, (30, 40))
+    metres[5, :7] = 0.0  # not measured
+    mask = rng.random((30, 40)) < 0.3
+    K = np.array([[520.0, 0, 19.5], [0, 510.0, 14.0], [0, 0, 1]])
+    millimetres = np.round(metres * 1000)
+    v, u = np.nonzero(mask & (metres > 0))
+    z = millimetres[v, u] / 1000
+    expected = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+    images = {
+        "uint16": (millimetres.astype(np.uint16), 1000.0),
+        "int32": (millimetres.astype(np.int32), 1000.0),
+        "float32 mm": (millimetres.astype(np.float32), 1000.0),
+        "float64 m": (millimetres / 1000, 1.0),
+        "big-endian": (millimetres.astype(">f8"), 1000.0),
+        "a strided view": (np.repeat(millimetres, 2, axis=1)[:, ::2].astype(np.uint16), 1000.0),
+    }
+    for name, (depth, scale) in images.items():
+        cloud = edgepose.cloud_from_depth(depth, K, mask, depth_scale=scale)
+        assert cloud.dtype == np.float64, name
+        np.testing.assert_allclose(cloud, expected, rtol=1e-12, atol=1e-12, err_msg=name)
+    nan_depth = metres.copy()
+    nan_depth[mask] = np.nan
+    assert len(edgepose.cloud_from_depth(nan_depth, K, mask, depth_scale=1.0)) == 0
+
+
+def test_clean_cloud_draws_at_most_max_points_reproducibly_in_any_float_layout(drill, view):
+    diameter = drill[1].model.diameter
+    cloud = view.cloud.astype(np.float64)
+    drawn = clean_cloud(cloud, diameter, 256)
+    assert drawn.shape == (256, 3) and drawn.dtype == np.float32
+    assert np.array_equal(drawn, clean_cloud(cloud, diameter, 256))
+    assert np.array_equal(drawn, clean_cloud(cloud.astype(">f8"), diameter, 256))
+    wide = np.zeros((len(cloud), 5))
+    wide[:, 1:4] = cloud
+    assert np.array_equal(drawn, clean_cloud(wide[:, 1:4], diameter, 256))  # a strided view, not copied
+    rows = {tuple(p) for p in cloud.astype(np.float32)}
+    assert all(tuple(p) in rows for p in drawn) and len({tuple(p) for p in drawn}) == 256
+    assert np.array_equal(clean_cloud(cloud, diameter, 10**6), cloud.astype(np.float32))

@@ -29,6 +29,43 @@ def segment_object(
     min_component_fraction: float = 0.01,
     max_component_offset: float = 0.8,
 ) -> tuple[npt.NDArray[np.bool_], float]: ...
+def ray_alignment(centroid: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+def back_project(
+    depth: npt.NDArray[np.uint16] | npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    mask: npt.NDArray[np.bool_],
+    k: npt.NDArray[np.float64],
+    depth_scale: float,
+) -> npt.NDArray[np.float64]: ...
+def clean_cloud(
+    cloud: npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    diameter: float,
+    max_points: int,
+    seed: int,
+    min_points: int,
+    max_coordinate: float,
+    max_extent_diameters: float,
+    min_extent_diameters: float,
+) -> npt.NDArray[np.float32]: ...
+def prepare_query(
+    points: npt.NDArray[np.float32],
+    diameter: float,
+    scale: float,
+    map_points: int,
+    keypoints: int,
+    min_points: int,
+    segment: bool,
+    shadow_spacings: float,
+    max_shadowed_fraction: float,
+    min_component_fraction: float,
+    max_component_offset: float,
+) -> tuple[
+    npt.NDArray[np.float32],
+    float,
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float32],
+    npt.NDArray[np.float32],
+]: ...
 
 class StandardModel:
     def __init__(

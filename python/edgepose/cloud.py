@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from edgepose import _core
 from edgepose.errors import InvalidCloudError
 
 #: Fewer valid points than this cannot give a pose.
@@ -24,6 +25,8 @@ MIN_EXTENT_DIAMETERS = 0.02
 #: Depth units per metre of millimetre depth images (16-bit PNGs, as BOP and
 #: most RGB-D sensors store them): ``cloud_from_depth``'s default.
 DEPTH_SCALE_MM = 1000.0
+#: Seed of :func:`clean_cloud`'s draw of at most ``max_points`` rows.
+SUBSAMPLE_SEED = 0
 #: Rows checked at a time: validation never copies a large cloud whole.
 _CHUNK_ROWS = 1 << 16
 #: A useful ``max_jump`` for ``cloud_from_depth`` on sensors with many
@@ -48,20 +51,7 @@ def as_cloud(
     With ``max_points``, a larger cloud is subsampled (seeded, so the same
     input gives the same points) *before* the float64 copy: memory stays
     bounded by the chunk size and ``max_points`` whatever the input's size."""
-    try:
-        array = np.asarray(getattr(cloud, "points", cloud))
-    except Exception as e:  # ragged lists, objects with a broken __array__, ...
-        raise InvalidCloudError(f"cloud is not array-like ({type(cloud).__name__}: {e})") from None
-    if array.dtype == np.bool_ or not (
-        np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
-    ):
-        raise InvalidCloudError(f"cloud must hold real numbers (float or integer), got dtype {array.dtype}")
-    if array.ndim != 2 or array.shape[1] != 3:
-        hint = (
-            "; an organised (H, W, 3) cloud needs .reshape(-1, 3)" if array.ndim == 3 and array.shape[-1] == 3 else ""
-        )
-        raise InvalidCloudError(f"cloud must have shape (N, 3), got {array.shape}{hint}")
-
+    array = _rows_of_numbers(cloud)
     masks = [_valid_rows(array[s : s + _CHUNK_ROWS]) for s in range(0, len(array), _CHUNK_ROWS)]
     counts = [int(mask.sum()) for mask in masks]
     valid = sum(counts)
@@ -80,29 +70,47 @@ def as_cloud(
 
 
 def clean_cloud(cloud: object, diameter: float, max_points: int) -> np.ndarray:
-    """The points of ``cloud`` that ``estimate`` matches against an object
-    ``diameter`` metres across: :func:`as_cloud` (at most ``max_points``),
-    then without points farther than a diameter from the median (segmentation
+    """(n, 3) float32: the points of ``cloud`` that ``estimate`` matches
+    against an object ``diameter`` metres across: its valid rows (as
+    :func:`as_cloud` reads them; at most ``max_points``, a seeded draw),
+    without points farther than a diameter from the median (segmentation
     leaks, which would drag the centroid). Raises InvalidCloudError when what
     remains cannot be the object at this scale (millimetres, an unsegmented
-    scene, or points that all coincide)."""
-    points = as_cloud(cloud, max_points)
-    near = np.linalg.norm(points - np.median(points, axis=0), axis=1) <= diameter
-    if near.sum() >= MIN_POINTS:
-        points = points[near]
-    # Per column: numpy's axis-0 reductions over 3 columns are ~8× slower.
-    extent = float(np.linalg.norm([np.ptp(points[:, k]) for k in range(3)]))
-    if extent > MAX_EXTENT_DIAMETERS * diameter:
-        raise InvalidCloudError(
-            f"cloud spans {extent:.3g} m but the object is {diameter:.3g} m across: "
-            "is the cloud in millimetres, or not segmented?"
+    scene, or points that all coincide). Runs in the Rust core
+    (``rust/src/query.rs``) without the GIL; a native float32 or float64
+    cloud is never copied whole (others are converted to float64 first)."""
+    array = _rows_of_numbers(cloud)
+    if array.dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
+        array = array.astype(np.float64)  # integers, float16, other byte orders: the same draw
+    return _core.clean_cloud(
+        array,
+        diameter,
+        max_points,
+        SUBSAMPLE_SEED,
+        MIN_POINTS,
+        MAX_COORDINATE,
+        MAX_EXTENT_DIAMETERS,
+        MIN_EXTENT_DIAMETERS,
+    )
+
+
+def _rows_of_numbers(cloud: object) -> np.ndarray:
+    """``cloud`` (or its ``.points``) as an (N, 3) array of real numbers,
+    not copied; InvalidCloudError naming what else it is."""
+    try:
+        array = np.asarray(getattr(cloud, "points", cloud))
+    except Exception as e:  # ragged lists, objects with a broken __array__, ...
+        raise InvalidCloudError(f"cloud is not array-like ({type(cloud).__name__}: {e})") from None
+    if array.dtype == np.bool_ or not (
+        np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
+    ):
+        raise InvalidCloudError(f"cloud must hold real numbers (float or integer), got dtype {array.dtype}")
+    if array.ndim != 2 or array.shape[1] != 3:
+        hint = (
+            "; an organised (H, W, 3) cloud needs .reshape(-1, 3)" if array.ndim == 3 and array.shape[-1] == 3 else ""
         )
-    if extent < MIN_EXTENT_DIAMETERS * diameter:
-        raise InvalidCloudError(
-            f"cloud spans only {extent:.3g} m but the object is {diameter:.3g} m across: "
-            "do its points coincide, or is it in other units than metres?"
-        )
-    return points
+        raise InvalidCloudError(f"cloud must have shape (N, 3), got {array.shape}{hint}")
+    return array
 
 
 def _valid_rows(chunk: np.ndarray) -> np.ndarray:
@@ -166,24 +174,28 @@ def cloud_from_depth(
     spilled mask's background itself, and the filter costs grazing
     surfaces (see :data:`FLYING_PIXEL_JUMP`). ``erode_px`` shrinks the mask
     by that many pixels first (a mask known to spill far)."""
-    z, measured, K = metric_depth(depth, K, depth_scale)
+    depth, K = checked_depth(depth, K, depth_scale)
     if max_jump is not None and not (np.isfinite(max_jump) and max_jump > 0):
         raise InvalidCloudError(f"max_jump must be a positive fraction of the depth or None, got {max_jump}")
     if not (isinstance(erode_px, (int, np.integer)) and erode_px >= 0):
         raise InvalidCloudError(f"erode_px must be a non-negative whole number of pixels, got {erode_px!r}")
-    valid = measured.copy()
+    valid = np.ones(depth.shape, dtype=bool)
     if mask is not None:
-        mask = checked_mask(mask, z.shape)
-        valid &= erode(mask, erode_px) if erode_px else mask
+        mask = checked_mask(mask, depth.shape)
+        valid = erode(mask, erode_px) if erode_px else mask
     if max_jump is not None:
-        valid &= ~depth_discontinuities(z, measured, valid, max_jump)
-    return back_project(z, K, valid)
+        z = depth / depth_scale
+        measured = np.isfinite(z) & (z > 0)
+        valid = valid & ~depth_discontinuities(z, measured, valid & measured, max_jump)
+    return back_project(depth, K, valid, depth_scale)
 
 
-def metric_depth(depth: np.ndarray, K: object, depth_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A depth image checked and in metres: ``(z (H, W) float64 metres,
-    measured (H, W) bool: finite and positive, K (3, 3) float64)``;
-    InvalidCloudError for a non-image, a bad ``K`` or ``depth_scale``."""
+def checked_depth(depth: object, K: object, depth_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """A depth image and its camera checked: ``(depth (H, W) C-contiguous,
+    uint16, float32 or float64 (other number types converted to float64),
+    K (3, 3) float64)``; InvalidCloudError for a non-image, a bad ``K`` or
+    ``depth_scale``. The image is not converted to metres: that is
+    :func:`back_project`'s work, per pixel it keeps."""
     depth = np.asarray(depth)
     K = pinhole_matrix(K)
     if depth.ndim != 2:
@@ -192,8 +204,9 @@ def metric_depth(depth: np.ndarray, K: object, depth_scale: float) -> tuple[np.n
         raise InvalidCloudError(f"depth must hold numbers, got dtype {depth.dtype}")
     if not (np.isfinite(depth_scale) and depth_scale > 0):
         raise InvalidCloudError(f"depth_scale must be a positive number (depth units per metre), got {depth_scale}")
-    z = depth.astype(np.float64) / depth_scale
-    return z, np.isfinite(z) & (z > 0), K
+    if depth.dtype not in (np.dtype(np.uint16), np.dtype(np.float32), np.dtype(np.float64)):
+        depth = depth.astype(np.float64)
+    return np.ascontiguousarray(depth), K
 
 
 def checked_mask(mask: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -204,17 +217,12 @@ def checked_mask(mask: object, shape: tuple[int, ...]) -> np.ndarray:
     return mask
 
 
-def back_project(z: np.ndarray, K: np.ndarray, valid: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """(N, 3) float64 camera-frame points (metres) of the ``valid`` pixels of
-    the depth image ``z`` (metres), in row-major order (pixel centres,
-    OpenCV). ``origin``: the (row, column) of ``z``'s first pixel when it is a
-    window of the camera's image."""
-    v, u = np.nonzero(valid)
-    z = z[v, u]
-    v, u = v + origin[0], u + origin[1]
-    x = (u - K[0, 2]) * z / K[0, 0]
-    y = (v - K[1, 2]) * z / K[1, 1]
-    return np.stack([x, y, z], axis=1)
+def back_project(depth: np.ndarray, K: np.ndarray, valid: np.ndarray, depth_scale: float) -> np.ndarray:
+    """(N, 3) float64 camera-frame points (metres) of the ``valid`` pixels
+    with a measured depth (``depth / depth_scale`` finite and positive) of a
+    :func:`checked_depth` image, in row-major order (pixel centres, OpenCV).
+    Runs in the Rust core without the GIL."""
+    return _core.back_project(depth, np.ascontiguousarray(valid, dtype=bool), K, float(depth_scale))
 
 
 def depth_discontinuities(z: np.ndarray, measured: np.ndarray, where: np.ndarray, max_jump: float) -> np.ndarray:

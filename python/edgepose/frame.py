@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from edgepose.cloud import DEPTH_SCALE_MM, back_project, checked_mask, metric_depth
+from edgepose.cloud import DEPTH_SCALE_MM, back_project, checked_depth, checked_mask
 from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import EdgePoseError
@@ -80,8 +80,8 @@ def estimate_many(
     encoder = encoder or default_encoder(threads=os.cpu_count() or 1)
     t0 = time.perf_counter()
     workers = max(1, min(workers or os.cpu_count() or 1, len(objects)))
-    z, measured, K = metric_depth(depth, K, depth_scale)
-    masks = [checked_mask(mask, z.shape) for mask, _ in objects]
+    depth, K = checked_depth(depth, K, depth_scale)
+    masks = [checked_mask(mask, depth.shape) for mask, _ in objects]
     codebooks = [codebook for _, codebook in objects]
     for codebook in codebooks:
         check_estimate_inputs(codebook, encoder, settings)
@@ -90,7 +90,7 @@ def estimate_many(
     def prepared(i: int) -> tuple[Query | None, Laps, EdgePoseError | None]:
         laps = Laps()
         try:
-            query = prepare_query(_masked_points(z, measured, K, masks[i]), codebooks[i], settings)
+            query = prepare_query(back_project(depth, K, masks[i], depth_scale), codebooks[i], settings)
         except EdgePoseError as e:
             return None, laps, e
         laps("prepare_query")
@@ -126,13 +126,3 @@ def estimate_many(
     seconds = time.perf_counter() - t0
     timings["total"] = seconds
     return FramePoses(poses, tuple(errors), seconds, timings)
-
-
-def _masked_points(z: np.ndarray, measured: np.ndarray, K: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(N, 3) camera-frame points of the measured pixels of ``mask``, found
-    in the mask's bounding box (a frame's objects are small)."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if len(rows) == 0:
-        return np.zeros((0, 3))
-    window = slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
-    return back_project(z[window], K, measured[window] & mask[window], (int(rows[0]), int(cols[0])))

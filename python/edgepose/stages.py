@@ -30,9 +30,8 @@ from edgepose import _core
 from edgepose.cloud import MIN_POINTS, clean_cloud
 from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder
-from edgepose.maps import normalize_to_map
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
-from edgepose.views import ray_alignment, rotation_about, rotation_about_z
+from edgepose.views import rotation_about, rotation_about_z
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,29 +77,23 @@ class PoseScores(NamedTuple):
 
 
 def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> Query:
-    """Stage 1: the object's points of ``cloud`` (camera frame, metres) and its map."""
+    """Stage 1: the object's points of ``cloud`` (camera frame, metres) and
+    its map, in one call to the Rust core (``rust/src/query.rs``)."""
     model = codebook.model
-    points = clean_cloud(cloud, model.diameter, settings.max_cloud_points).astype(np.float32)
-    spacing = 0.0
-    if settings.segment:
-        keep, spacing = _core.segment_object(
-            points,
-            model.diameter,
-            settings.shadow_spacings,
-            settings.max_shadowed_fraction,
-            settings.min_component_fraction,
-            settings.max_component_offset,
-        )
-        if keep.sum() >= MIN_POINTS:
-            points = np.ascontiguousarray(points[keep])
-    centroid = points.mean(axis=0, dtype=np.float64)
-    r_corr = ray_alignment(centroid)
-    corrected = ((points - centroid) @ r_corr.T).astype(np.float32)
-    query_map, _ = normalize_to_map(corrected, model.scale, codebook.map_points)
-    keypoints = (query_map[: settings.keypoints] / model.scale) @ r_corr.astype(np.float32) + centroid.astype(
-        np.float32
+    points, spacing, centroid, r_corr, query_map, keypoints = _core.prepare_query(
+        clean_cloud(cloud, model.diameter, settings.max_cloud_points),
+        model.diameter,
+        model.scale,
+        codebook.map_points,
+        settings.keypoints,
+        MIN_POINTS,
+        settings.segment,
+        settings.shadow_spacings,
+        settings.max_shadowed_fraction,
+        settings.min_component_fraction,
+        settings.max_component_offset,
     )
-    return Query(points, float(spacing), centroid, r_corr, query_map, np.ascontiguousarray(keypoints, dtype=np.float32))
+    return Query(points, spacing, centroid, r_corr, query_map, keypoints)
 
 
 class Retrieval(NamedTuple):

@@ -133,7 +133,7 @@ class Tracker:
         assert last is not None
         model = codebook.model
         d = model.diameter
-        seen = clean_cloud(cloud, d, track.grid_points).astype(np.float32)
+        seen = clean_cloud(cloud, d, track.grid_points)
         points = subsample(seen, track.points, self.settings.subsample_seed)
         R, t = last.R, last.t + last.R @ model.centre  # model frame → camera
         if track.velocity > 0 and self._previous is not None:

@@ -45,18 +45,7 @@ def ray_alignment(centroid: np.ndarray) -> np.ndarray:
     frame) that turns the ray through ``centroid`` (camera frame, metres) onto
     the optical axis +z. An observed cloud rotated by it looks as if the
     camera faced the object head-on, like the codebook's virtual cameras."""
-    ray = np.asarray(centroid, dtype=np.float64)
-    norm = np.linalg.norm(ray)
-    if not np.isfinite(norm) or norm == 0:
-        raise ValueError(f"centroid must be finite and non-zero, got {centroid}")
-    ray = ray / norm
-    axis = np.cross(ray, [0.0, 0.0, 1.0])
-    s, c = np.linalg.norm(axis), ray[2]
-    if s < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    k = axis / s
-    skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * skew + (1 - c) * skew @ skew
+    return _core.ray_alignment(np.ascontiguousarray(centroid, dtype=np.float64))
 
 
 def rotation_about_z(angles: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ pub mod index;
 pub mod maps;
 pub mod model;
 pub mod pairs;
+pub mod query;
 pub mod refine;
 pub mod rng;
 pub mod sampling;
@@ -30,10 +31,14 @@ pub use grouping::{map_neighbours, neighbours_of_maps};
 pub use index::{ModelIndex, Pose};
 pub use maps::{compute_maps, normalize_to_map, view_map, Maps, ViewMap};
 pub use model::StandardModel;
+pub use query::{
+    back_project, clean_cloud, prepare_query, CleanSettings, CloudProblem, Pinhole, Query,
+    QuerySettings,
+};
 pub use refine::IcpResult;
 pub use sampling::farthest_point_sample;
 pub use scoring::{score_poses, DepthGrid, PoseScore, ScoreSettings};
 pub use search::{top_k, verify};
 pub use segment::{segment, SegmentSettings, Segmentation};
-pub use views::{fibonacci_directions, view_rotation, viewpoints, Rotation};
+pub use views::{fibonacci_directions, ray_alignment, view_rotation, viewpoints, Rotation};
 pub use visibility::visible_mask;

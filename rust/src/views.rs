@@ -40,6 +40,30 @@ pub fn view_rotation(direction: &Vector3<f64>) -> Rotation {
     Matrix3::from_rows(&[x_axis.transpose(), y_axis.transpose(), z_axis.transpose()])
 }
 
+/// Viewpoint correction: the smallest rotation (camera frame → corrected
+/// frame) that turns the ray through `centroid` (camera frame, metres) onto
+/// the optical axis +z. An observed cloud rotated by it looks as if the
+/// camera faced the object head-on, like the codebook's virtual cameras.
+/// None when `centroid` is zero or not finite (no ray).
+pub fn ray_alignment(centroid: &Vector3<f64>) -> Option<Rotation> {
+    let norm = centroid.norm();
+    if !norm.is_finite() || norm == 0.0 {
+        return None;
+    }
+    let ray = centroid / norm;
+    let axis = ray.cross(&Vector3::z());
+    let (s, c) = (axis.norm(), ray.z);
+    if s < 1e-12 {
+        return Some(if c > 0.0 {
+            Matrix3::identity()
+        } else {
+            Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0))
+        });
+    }
+    let skew = (axis / s).cross_matrix();
+    Some(Matrix3::identity() + skew * s + skew * skew * (1.0 - c))
+}
+
 /// Directions and their view rotations for `n` viewpoints.
 pub fn viewpoints(n: usize) -> (Vec<Vector3<f64>>, Vec<Rotation>) {
     let directions = fibonacci_directions(n);
@@ -50,6 +74,23 @@ pub fn viewpoints(n: usize) -> (Vec<Vector3<f64>>, Vec<Rotation>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ray_alignment_turns_the_centroid_ray_onto_the_optical_axis() {
+        for centroid in [
+            Vector3::new(0.2, -0.1, 0.7),
+            Vector3::new(0.0, 0.0, 0.5),
+            Vector3::new(0.0, 0.0, -0.5),
+            Vector3::new(-1.0, 0.3, 0.1),
+        ] {
+            let r = ray_alignment(&centroid).unwrap();
+            assert!((r * r.transpose() - Matrix3::identity()).norm() < 1e-12);
+            assert!((r.determinant() - 1.0).abs() < 1e-12);
+            assert!((r * centroid.normalize() - Vector3::z()).norm() < 1e-12);
+        }
+        assert!(ray_alignment(&Vector3::zeros()).is_none());
+        assert!(ray_alignment(&Vector3::new(f64::NAN, 0.0, 1.0)).is_none());
+    }
 
     fn nearest_angles_deg(dirs: &[Vector3<f64>]) -> Vec<f64> {
         dirs.iter()

@@ -76,6 +76,16 @@ pub fn rotations_array<'a, 'py>(
         .into_pyarray(py)
 }
 
+/// One 3 × 3 matrix as a (3, 3) float64 array (row-major).
+pub fn matrix_array<'py>(
+    py: Python<'py>,
+    matrix: &nalgebra::Matrix3<f64>,
+) -> Bound<'py, PyArray2<f64>> {
+    Array::from_shape_vec((3, 3), matrix.transpose().as_slice().to_vec())
+        .expect("3 × 3")
+        .into_pyarray(py)
+}
+
 /// Translations (metres) as a (C, 3) float64 array.
 pub fn translations_array<'a, 'py>(
     py: Python<'py>,

@@ -9,8 +9,9 @@ use numpy::{
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use super::arrays::{points_array, rotations_array, triples};
+use super::arrays::{matrix_array, points_array, rotations_array, triples};
 use super::{guarded, InvalidCloudError, InvalidModelError};
+use crate::query::{self, CleanSettings, Pinhole, QuerySettings};
 use crate::segment::{segment, SegmentSettings};
 use crate::{grouping, maps, sampling, search, views, visibility};
 
@@ -23,6 +24,10 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
     m.add_function(wrap_pyfunction!(segment_object, m)?)?;
+    m.add_function(wrap_pyfunction!(back_project, m)?)?;
+    m.add_function(wrap_pyfunction!(clean_cloud, m)?)?;
+    m.add_function(wrap_pyfunction!(prepare_query, m)?)?;
+    m.add_function(wrap_pyfunction!(ray_alignment, m)?)?;
     Ok(())
 }
 
@@ -152,11 +157,7 @@ fn view_rotation<'py>(
             ));
         }
         let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
-        Ok(
-            Array::from_shape_vec((3, 3), r.transpose().as_slice().to_vec())
-                .expect("3 × 3")
-                .into_pyarray(py),
-        )
+        Ok(matrix_array(py, &r))
     })
 }
 
@@ -221,5 +222,221 @@ fn segment_object<'py>(
         };
         let found = py.detach(|| segment(c, diameter, &settings));
         Ok((PyArray1::from_vec(py, found.keep), found.spacing))
+    })
+}
+
+/// [`query::clean_cloud`] of an (N, 3) float32 or float64 cloud (camera
+/// frame, metres; any strides): the points `estimate` matches, as an (n, 3)
+/// float32 array; `InvalidCloudError` naming the problem otherwise.
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn clean_cloud<'py>(
+    py: Python<'py>,
+    cloud: &Bound<'py, PyAny>,
+    diameter: f64,
+    max_points: usize,
+    seed: u64,
+    min_points: usize,
+    max_coordinate: f64,
+    max_extent_diameters: f64,
+    min_extent_diameters: f64,
+) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    guarded(|| {
+        let settings = CleanSettings {
+            max_points,
+            seed,
+            min_points,
+            max_coordinate,
+            max_extent_diameters,
+            min_extent_diameters,
+        };
+        let cleaned = if let Ok(array) = cloud.extract::<PyReadonlyArray2<'py, f32>>() {
+            let rows = array.as_array();
+            if rows.ncols() != 3 {
+                return Err(InvalidCloudError::new_err(format!(
+                    "cloud must have shape (N, 3), got {:?}",
+                    rows.shape()
+                )));
+            }
+            py.detach(|| {
+                query::clean_cloud(
+                    rows.nrows(),
+                    |i| [0, 1, 2].map(|k| rows[[i, k]] as f64),
+                    diameter,
+                    &settings,
+                )
+            })
+        } else {
+            let array = cloud.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
+                InvalidCloudError::new_err(
+                    "cloud must be a float32 or float64 array of shape (N, 3)",
+                )
+            })?;
+            let rows = array.as_array();
+            if rows.ncols() != 3 {
+                return Err(InvalidCloudError::new_err(format!(
+                    "cloud must have shape (N, 3), got {:?}",
+                    rows.shape()
+                )));
+            }
+            py.detach(|| {
+                query::clean_cloud(
+                    rows.nrows(),
+                    |i| [0, 1, 2].map(|k| rows[[i, k]]),
+                    diameter,
+                    &settings,
+                )
+            })
+        };
+        let points = cleaned.map_err(|problem| InvalidCloudError::new_err(problem.to_string()))?;
+        Ok(points_array(py, &points))
+    })
+}
+
+/// [`query::prepare_query`] (stage 1) on cleaned (N, 3) float32 `points`:
+/// `(points kept (n, 3) f32, spacing m, centroid (3,) f64, r_corr (3, 3)
+/// f64, map (map_points, 3) f32, keypoints (keypoints, 3) f32)`. `segment`
+/// false keeps every point (spacing 0).
+#[pyfunction]
+#[pyo3(signature = (points, diameter, scale, map_points, keypoints, min_points, segment, shadow_spacings, max_shadowed_fraction, min_component_fraction, max_component_offset))]
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+fn prepare_query<'py>(
+    py: Python<'py>,
+    points: PyReadonlyArray2<'py, f32>,
+    diameter: f64,
+    scale: f32,
+    map_points: usize,
+    keypoints: usize,
+    min_points: usize,
+    segment: bool,
+    shadow_spacings: f64,
+    max_shadowed_fraction: f64,
+    min_component_fraction: f64,
+    max_component_offset: f64,
+) -> PyResult<(
+    Bound<'py, PyArray2<f32>>,
+    f64,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f32>>,
+    Bound<'py, PyArray2<f32>>,
+)> {
+    guarded(|| {
+        let p = triples(&points, "points").map_err(InvalidCloudError::new_err)?;
+        if p.is_empty() {
+            return Err(InvalidCloudError::new_err("cloud is empty"));
+        }
+        if !(diameter.is_finite() && diameter > 0.0 && scale.is_finite() && scale > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "diameter and scale must be positive, got {diameter} and {scale}"
+            )));
+        }
+        let settings = QuerySettings {
+            segment: segment.then_some(SegmentSettings {
+                shadow_spacings,
+                max_shadowed_fraction,
+                min_component_fraction,
+                max_component_offset,
+                ..SegmentSettings::default()
+            }),
+            min_points,
+            map_points,
+            keypoints,
+        };
+        let prepared = py
+            .detach(|| query::prepare_query(p.to_vec(), diameter, scale, &settings))
+            .map_err(|problem| InvalidCloudError::new_err(problem.to_string()))?;
+        Ok((
+            points_array(py, &prepared.points),
+            prepared.spacing,
+            PyArray1::from_vec(py, prepared.centroid.as_slice().to_vec()),
+            matrix_array(py, &prepared.r_corr),
+            points_array(py, &prepared.map),
+            points_array(py, &prepared.keypoints),
+        ))
+    })
+}
+
+/// [`views::ray_alignment`] of a (3,) centroid (camera frame, metres);
+/// `ValueError` when it is zero or not finite.
+#[pyfunction]
+fn ray_alignment<'py>(
+    py: Python<'py>,
+    centroid: PyReadonlyArray1<'py, f64>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    guarded(|| {
+        let c = centroid
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("centroid must be contiguous"))?;
+        let [x, y, z] = c else {
+            return Err(PyValueError::new_err(format!(
+                "centroid must have 3 values, got {}",
+                c.len()
+            )));
+        };
+        let r = views::ray_alignment(&nalgebra::Vector3::new(*x, *y, *z)).ok_or_else(|| {
+            PyValueError::new_err(format!("centroid must be finite and non-zero, got {c:?}"))
+        })?;
+        Ok(matrix_array(py, &r))
+    })
+}
+
+/// [`query::back_project`]: the (N, 3) float64 camera-frame points (metres)
+/// of the measured pixels of `mask` in a C-contiguous (H, W) `depth` image
+/// (uint16, float32 or float64; `depth / depth_scale` metres), `K` the
+/// checked 3 × 3 pinhole matrix.
+#[pyfunction]
+fn back_project<'py>(
+    py: Python<'py>,
+    depth: &Bound<'py, PyAny>,
+    mask: PyReadonlyArray2<'py, bool>,
+    k: PyReadonlyArray2<'py, f64>,
+    depth_scale: f64,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    guarded(|| {
+        let k = k.as_array();
+        let camera = Pinhole {
+            fx: k[[0, 0]],
+            fy: k[[1, 1]],
+            cx: k[[0, 2]],
+            cy: k[[1, 2]],
+        };
+        let shape = mask.shape().to_vec();
+        let flags = mask
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("mask must be C-contiguous"))?;
+        fn pixels<'a, T: numpy::Element>(
+            image: &'a PyReadonlyArray2<'_, T>,
+            shape: &[usize],
+        ) -> PyResult<&'a [T]> {
+            if image.shape() != shape {
+                return Err(InvalidCloudError::new_err(format!(
+                    "mask shape {shape:?} differs from depth shape {:?}",
+                    image.shape()
+                )));
+            }
+            image
+                .as_slice()
+                .map_err(|_| PyValueError::new_err("depth must be C-contiguous"))
+        }
+        let width = shape[1];
+        let points = if let Ok(image) = depth.extract::<PyReadonlyArray2<'py, u16>>() {
+            let d = pixels(&image, &shape)?;
+            py.detach(|| query::back_project(d, flags, width, &camera, depth_scale))
+        } else if let Ok(image) = depth.extract::<PyReadonlyArray2<'py, f32>>() {
+            let d = pixels(&image, &shape)?;
+            py.detach(|| query::back_project(d, flags, width, &camera, depth_scale))
+        } else {
+            let image = depth.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
+                PyValueError::new_err("depth must be a uint16, float32 or float64 image")
+            })?;
+            let d = pixels(&image, &shape)?;
+            py.detach(|| query::back_project(d, flags, width, &camera, depth_scale))
+        };
+        Ok(
+            Array::from_shape_vec((points.len(), 3), points.as_flattened().to_vec())
+                .expect("n × 3")
+                .into_pyarray(py),
+        )
     })
 }

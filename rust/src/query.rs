@@ -1,0 +1,442 @@
+//! Stage 1 of `estimate`: an observed cloud (camera frame, metres) made
+//! ready for the codebook, in two steps (after [`back_project`] when the
+//! cloud comes from a depth image and a mask):
+//!
+//! 1. [`clean_cloud`]: the valid rows (finite, within `max_coordinate`),
+//!    at most `max_points` of them (a seeded draw), without the points
+//!    farther than a diameter from the median (segmentation leaks), and
+//!    checked to span a plausible extent for the object;
+//! 2. [`prepare_query`]: the points [`segment`] keeps as the object, turned
+//!    so the ray through their centroid is the optical axis, and resampled
+//!    to a map ([`normalize_to_map`]) whose first points, back in the camera
+//!    frame, are the query's keypoints.
+//!
+//! Both run in one call each, without the GIL, for `estimate` and for the
+//! threads of `estimate_many` (~1 ms per object on the BOP frames).
+
+use std::collections::HashSet;
+use std::fmt;
+
+use nalgebra::{Matrix3, Vector3};
+
+use crate::maps::normalize_to_map;
+use crate::rng::SplitMix64;
+use crate::segment::{segment, SegmentSettings};
+use crate::views::{ray_alignment, Rotation};
+use crate::Point3;
+
+/// Pinhole intrinsics, pixels: focal lengths and principal point (OpenCV:
+/// pixel (row v, column u) has its centre at (u, v)).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pinhole {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+/// Camera-frame points (metres) of the pixels of a `width`-wide row-major
+/// depth image whose `mask` flag is set and whose depth is measured (`depth
+/// / depth_scale` finite and positive, metres), in row-major order. Rows
+/// without a flag are skipped whole (one object's mask is small).
+pub fn back_project<T: Copy + Into<f64>>(
+    depth: &[T],
+    mask: &[bool],
+    width: usize,
+    camera: &Pinhole,
+    depth_scale: f64,
+) -> Vec<[f64; 3]> {
+    let mut points = Vec::new();
+    if width == 0 {
+        return points;
+    }
+    for (v, (depth_row, mask_row)) in depth
+        .chunks_exact(width)
+        .zip(mask.chunks_exact(width))
+        .enumerate()
+    {
+        if !mask_row.contains(&true) {
+            continue;
+        }
+        for (u, (d, _)) in depth_row
+            .iter()
+            .zip(mask_row)
+            .enumerate()
+            .filter(|(_, (_, m))| **m)
+        {
+            let z = (*d).into() / depth_scale;
+            if z.is_finite() && z > 0.0 {
+                let x = (u as f64 - camera.cx) * z / camera.fx;
+                let y = (v as f64 - camera.cy) * z / camera.fy;
+                points.push([x, y, z]);
+            }
+        }
+    }
+    points
+}
+
+/// Limits of [`clean_cloud`] (the Python layer's `edgepose.cloud` constants).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CleanSettings {
+    /// At most this many points are kept (a seeded draw of the valid rows).
+    pub max_points: usize,
+    /// Seed of that draw: the same cloud always gives the same points.
+    pub seed: u64,
+    /// Fewer valid points than this cannot give a pose.
+    pub min_points: usize,
+    /// A coordinate larger than this (metres) marks its row as garbage.
+    pub max_coordinate: f64,
+    /// A cloud spanning more object diameters than this is not the object alone.
+    pub max_extent_diameters: f64,
+    /// A cloud spanning fewer object diameters than this holds no shape.
+    pub min_extent_diameters: f64,
+}
+
+/// Why a cloud cannot give a pose; the message names the likely cause.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CloudProblem {
+    TooFewPoints {
+        valid: usize,
+        total: usize,
+        needed: usize,
+        max_coordinate: f64,
+    },
+    TooWide {
+        extent: f64,
+        diameter: f64,
+    },
+    TooSmall {
+        extent: f64,
+        diameter: f64,
+    },
+    /// The centroid is the camera centre: no ray to align.
+    AtCameraCentre,
+}
+
+impl fmt::Display for CloudProblem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::TooFewPoints {
+                valid,
+                total,
+                needed,
+                max_coordinate,
+            } => write!(
+                f,
+                "cloud has {valid} valid points of {total} (rows with NaN, inf or coordinates beyond \
+                 {max_coordinate} m are dropped); at least {needed} are needed"
+            ),
+            Self::TooWide { extent, diameter } => write!(
+                f,
+                "cloud spans {extent:.3} m but the object is {diameter:.3} m across: \
+                 is the cloud in millimetres, or not segmented?"
+            ),
+            Self::TooSmall { extent, diameter } => write!(
+                f,
+                "cloud spans only {extent:.3} m but the object is {diameter:.3} m across: \
+                 do its points coincide, or is it in other units than metres?"
+            ),
+            Self::AtCameraCentre => write!(
+                f,
+                "cloud is centred on the camera centre (0, 0, 0): no viewing ray to align"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for CloudProblem {}
+
+/// The points of a cloud of `total` rows (`row(i)`: row `i`, metres, camera
+/// frame) that `estimate` matches against an object `diameter` metres
+/// across; see the module's step 1. The rows are read twice and never
+/// copied whole: memory stays bounded by `max_points`, whatever the cloud's size.
+pub fn clean_cloud(
+    total: usize,
+    row: impl Fn(usize) -> [f64; 3],
+    diameter: f64,
+    settings: &CleanSettings,
+) -> Result<Vec<Point3>, CloudProblem> {
+    let limit = settings.max_coordinate;
+    let valid_row = |p: &[f64; 3]| p.iter().all(|c| c.abs() <= limit); // false for NaN
+    let valid = (0..total).filter(|&i| valid_row(&row(i))).count();
+    if valid < settings.min_points {
+        return Err(CloudProblem::TooFewPoints {
+            valid,
+            total,
+            needed: settings.min_points,
+            max_coordinate: limit,
+        });
+    }
+    let wanted = settings.max_points.min(valid);
+    let ranks = drawn_ranks(valid, wanted, settings.seed);
+    let mut points: Vec<[f64; 3]> = Vec::with_capacity(wanted);
+    let mut rank = 0;
+    for i in 0..total {
+        let p = row(i);
+        if valid_row(&p) {
+            if ranks.as_ref().is_none_or(|r| r.contains(&rank)) {
+                points.push(p);
+            }
+            rank += 1;
+        }
+    }
+    let median = [0, 1, 2].map(|k| median(points.iter().map(|p| p[k]).collect()));
+    let near = |p: &[f64; 3]| distance(p, &median) <= diameter;
+    if points.iter().filter(|p| near(p)).count() >= settings.min_points {
+        points.retain(near);
+    }
+    let extent = (0..3)
+        .map(|k| {
+            let (lo, hi) = points
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                    (lo.min(p[k]), hi.max(p[k]))
+                });
+            (hi - lo).powi(2)
+        })
+        .sum::<f64>()
+        .sqrt();
+    if extent > settings.max_extent_diameters * diameter {
+        return Err(CloudProblem::TooWide { extent, diameter });
+    }
+    if extent < settings.min_extent_diameters * diameter {
+        return Err(CloudProblem::TooSmall { extent, diameter });
+    }
+    Ok(points.iter().map(|p| p.map(|c| c as f32)).collect())
+}
+
+/// `wanted` distinct ranks of `0..valid`, drawn with `seed` (Floyd's
+/// algorithm: `wanted` draws, whatever `valid`); None when all are wanted.
+fn drawn_ranks(valid: usize, wanted: usize, seed: u64) -> Option<HashSet<usize>> {
+    if wanted >= valid {
+        return None;
+    }
+    let mut rng = SplitMix64::new(seed);
+    let mut chosen = HashSet::with_capacity(wanted);
+    for j in valid - wanted..valid {
+        let t = ((rng.next_u64() as u128 * (j as u128 + 1)) >> 64) as usize; // uniform in 0..=j
+        if !chosen.insert(t) {
+            chosen.insert(j);
+        }
+    }
+    Some(chosen)
+}
+
+/// The median of `values` (the mean of the two middle ones for an even count).
+fn median(mut values: Vec<f64>) -> f64 {
+    let n = values.len();
+    let (below, middle, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
+    let middle = *middle;
+    if n % 2 == 1 {
+        return middle;
+    }
+    let lower = below.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    0.5 * (lower + middle)
+}
+
+fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
+}
+
+/// Tuning of [`prepare_query`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct QuerySettings {
+    /// How to find the object's points; None keeps every point.
+    pub segment: Option<SegmentSettings>,
+    /// The segmentation is used only when it keeps at least this many points.
+    pub min_points: usize,
+    /// Points of the map.
+    pub map_points: usize,
+    /// The map's first points that are the query's keypoints.
+    pub keypoints: usize,
+}
+
+/// An observed cloud made ready for the codebook.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Query {
+    /// Camera-frame points kept as the object, metres.
+    pub points: Vec<Point3>,
+    /// Median distance between neighbouring points, metres (0 without segmentation).
+    pub spacing: f64,
+    /// Centroid of `points`, camera frame, metres.
+    pub centroid: Vector3<f64>,
+    /// Viewpoint correction: camera frame → frame whose +z is the centroid ray.
+    pub r_corr: Rotation,
+    /// The corrected, centred, scaled and resampled map.
+    pub map: Vec<Point3>,
+    /// The map's first `keypoints` points, back in the camera frame, metres.
+    pub keypoints: Vec<Point3>,
+}
+
+/// Stage 1 on cleaned `points` ([`clean_cloud`]) of an object `diameter`
+/// metres across whose maps are scaled by `scale`; see the module's step 2.
+pub fn prepare_query(
+    mut points: Vec<Point3>,
+    diameter: f64,
+    scale: f32,
+    settings: &QuerySettings,
+) -> Result<Query, CloudProblem> {
+    let mut spacing = 0.0;
+    if let Some(segment_settings) = &settings.segment {
+        let found = segment(&points, diameter, segment_settings);
+        spacing = found.spacing;
+        if found.keep.iter().filter(|k| **k).count() >= settings.min_points {
+            let mut keep = found.keep.iter();
+            points.retain(|_| *keep.next().expect("one flag per point"));
+        }
+    }
+    let sum = points.iter().fold(Vector3::zeros(), |s, p| {
+        s + Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64)
+    });
+    let centroid = sum / points.len() as f64;
+    let r_corr = ray_alignment(&centroid).ok_or(CloudProblem::AtCameraCentre)?;
+    let corrected: Vec<Point3> = points
+        .iter()
+        .map(|p| {
+            let q = r_corr * (Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64) - centroid);
+            [q.x as f32, q.y as f32, q.z as f32]
+        })
+        .collect();
+    let (map, _) = normalize_to_map(&corrected, scale, settings.map_points);
+    let back: Matrix3<f32> = r_corr.transpose().cast();
+    let origin: Vector3<f32> = centroid.cast();
+    let keypoints = map
+        .iter()
+        .take(settings.keypoints)
+        .map(|m| {
+            let p = back * (Vector3::from(*m) / scale) + origin;
+            [p.x, p.y, p.z]
+        })
+        .collect();
+    Ok(Query {
+        points,
+        spacing,
+        centroid,
+        r_corr,
+        map,
+        keypoints,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LIMITS: CleanSettings = CleanSettings {
+        max_points: 2048,
+        seed: 0,
+        min_points: 32,
+        max_coordinate: 1e6,
+        max_extent_diameters: 5.0,
+        min_extent_diameters: 0.02,
+    };
+
+    /// A 10 cm square patch of `n` × `n` points at 0.6 m depth, off-axis.
+    fn patch(n: usize) -> Vec<[f64; 3]> {
+        (0..n * n)
+            .map(|i| {
+                let (a, b) = ((i % n) as f64 / n as f64, (i / n) as f64 / n as f64);
+                [0.1 + 0.1 * a, -0.05 + 0.1 * b, 0.6 + 0.02 * a]
+            })
+            .collect()
+    }
+
+    fn cleaned(cloud: &[[f64; 3]], settings: &CleanSettings) -> Result<Vec<Point3>, CloudProblem> {
+        clean_cloud(cloud.len(), |i| cloud[i], 0.15, settings)
+    }
+
+    #[test]
+    fn garbage_rows_and_a_far_leak_are_dropped_and_large_clouds_drawn_reproducibly() {
+        let mut cloud = patch(20);
+        cloud.push([f64::NAN, 0.0, 0.6]);
+        cloud.push([0.0, 2e6, 0.6]);
+        cloud.push([0.5, 0.5, 3.0]); // a leak several metres behind
+        let points = cleaned(&cloud, &LIMITS).unwrap();
+        assert_eq!(points.len(), 400);
+        assert!(points.iter().all(|p| p[2] < 1.0));
+
+        let big = patch(100);
+        let drawn = cleaned(&big, &LIMITS).unwrap();
+        assert_eq!(drawn.len(), 2048);
+        assert_eq!(drawn, cleaned(&big, &LIMITS).unwrap());
+        let distinct: HashSet<[u32; 3]> = drawn.iter().map(|p| p.map(f32::to_bits)).collect();
+        assert_eq!(distinct.len(), 2048);
+        let reseeded = cleaned(&big, &CleanSettings { seed: 1, ..LIMITS }).unwrap();
+        assert_ne!(drawn, reseeded);
+    }
+
+    #[test]
+    fn clouds_that_cannot_be_the_object_name_the_problem() {
+        let few = &patch(20)[..31];
+        assert!(matches!(
+            cleaned(few, &LIMITS),
+            Err(CloudProblem::TooFewPoints { valid: 31, .. })
+        ));
+        let millimetres: Vec<[f64; 3]> = patch(20).iter().map(|p| p.map(|c| c * 1000.0)).collect();
+        assert!(matches!(
+            cleaned(&millimetres, &LIMITS),
+            Err(CloudProblem::TooWide { .. })
+        ));
+        let coincident = vec![[0.1, 0.0, 0.6]; 100];
+        let problem = cleaned(&coincident, &LIMITS).unwrap_err();
+        assert!(problem.to_string().contains("coincide"), "{problem}");
+    }
+
+    #[test]
+    fn back_projection_keeps_measured_masked_pixels_in_row_major_order() {
+        let camera = Pinhole {
+            fx: 500.0,
+            fy: 400.0,
+            cx: 1.5,
+            cy: 1.0,
+        };
+        let depth: Vec<u16> = vec![0, 1000, 1000, 2000, 800, 0, 1000, 1000, 500, 500, 500, 500];
+        let mut mask = vec![false; 12];
+        for i in [1, 3, 4, 5, 9] {
+            mask[i] = true;
+        }
+        let points = back_project(&depth, &mask, 4, &camera, 1000.0);
+        // pixel 5 has no depth; the rest in order 1, 3, 4, 9.
+        assert_eq!(points.len(), 4);
+        assert_eq!(
+            points[0],
+            [(1.0 - 1.5) * 1.0 / 500.0, (0.0 - 1.0) * 1.0 / 400.0, 1.0]
+        );
+        assert_eq!(points[1], [(3.0 - 1.5) * 2.0 / 500.0, -2.0 / 400.0, 2.0]);
+        assert_eq!(points[2], [(0.0 - 1.5) * 0.8 / 500.0, 0.0, 0.8]);
+        assert_eq!(points[3], [(1.0 - 1.5) * 0.5 / 500.0, 0.5 / 400.0, 0.5]);
+        let nan_depth = [f32::NAN, -1.0, 0.5];
+        assert_eq!(
+            back_project(&nan_depth, &[true; 3], 3, &camera, 1.0).len(),
+            1
+        );
+    }
+
+    #[test]
+    fn median_of_odd_and_even_counts() {
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), 2.5);
+    }
+
+    #[test]
+    fn keypoints_are_the_map_back_in_the_camera_frame() {
+        let points = cleaned(&patch(30), &LIMITS).unwrap();
+        let settings = QuerySettings {
+            segment: None,
+            min_points: 32,
+            map_points: 128,
+            keypoints: 16,
+        };
+        let query = prepare_query(points.clone(), 0.15, 5.0, &settings).unwrap();
+        assert_eq!((query.map.len(), query.keypoints.len()), (128, 16));
+        let ray = query.r_corr * query.centroid.normalize();
+        assert!((ray - Vector3::z()).norm() < 1e-9);
+        for k in &query.keypoints {
+            let nearest = points
+                .iter()
+                .map(|p| (0..3).map(|i| (p[i] - k[i]).powi(2)).sum::<f32>())
+                .fold(f32::INFINITY, f32::min);
+            assert!(nearest.sqrt() < 1e-5, "a keypoint {k:?} is no cloud point");
+        }
+    }
+}
