@@ -167,14 +167,14 @@ pub fn clean_cloud(
             max_coordinate: limit,
         });
     }
-    let wanted = settings.max_points.min(valid);
-    let ranks = drawn_ranks(valid, wanted, settings.seed);
-    let mut points: Vec<[f64; 3]> = Vec::with_capacity(wanted);
+    let ranks = draw(valid, settings.max_points, settings.seed);
+    let mut wanted = ranks.iter().peekable();
+    let mut points: Vec<[f64; 3]> = Vec::with_capacity(ranks.len());
     let mut rank = 0;
     for i in 0..total {
         let p = row(i);
         if valid_row(&p) {
-            if ranks.as_ref().is_none_or(|r| r.contains(&rank)) {
+            if wanted.next_if_eq(&&rank).is_some() {
                 points.push(p);
             }
             rank += 1;
@@ -205,21 +205,23 @@ pub fn clean_cloud(
     Ok(points.iter().map(|p| p.map(|c| c as f32)).collect())
 }
 
-/// `wanted` distinct ranks of `0..valid`, drawn with `seed` (Floyd's
-/// algorithm: `wanted` draws, whatever `valid`); None when all are wanted.
-fn drawn_ranks(valid: usize, wanted: usize, seed: u64) -> Option<HashSet<usize>> {
-    if wanted >= valid {
-        return None;
+/// `count` distinct indices of `0..n` (all of them when `count >= n`),
+/// drawn with `seed`, ascending. Floyd's algorithm: `count` draws, whatever `n`.
+pub fn draw(n: usize, count: usize, seed: u64) -> Vec<usize> {
+    if count >= n {
+        return (0..n).collect();
     }
     let mut rng = SplitMix64::new(seed);
-    let mut chosen = HashSet::with_capacity(wanted);
-    for j in valid - wanted..valid {
+    let mut chosen = HashSet::with_capacity(count);
+    for j in n - count..n {
         let t = ((rng.next_u64() as u128 * (j as u128 + 1)) >> 64) as usize; // uniform in 0..=j
         if !chosen.insert(t) {
             chosen.insert(j);
         }
     }
-    Some(chosen)
+    let mut drawn: Vec<usize> = chosen.into_iter().collect();
+    drawn.sort_unstable();
+    drawn
 }
 
 /// The median of `values` (the mean of the two middle ones for an even count).
@@ -410,6 +412,22 @@ mod tests {
             back_project(&nan_depth, &[true; 3], 3, &camera, 1.0).len(),
             1
         );
+    }
+
+    #[test]
+    fn draws_are_distinct_ascending_reproducible_and_cover_small_sets() {
+        let drawn = draw(10_000, 300, 5);
+        assert_eq!(drawn.len(), 300);
+        assert!(drawn.windows(2).all(|w| w[0] < w[1]) && drawn[299] < 10_000);
+        assert_eq!(drawn, draw(10_000, 300, 5));
+        assert_ne!(drawn, draw(10_000, 300, 6));
+        assert_eq!(draw(4, 9, 0), vec![0, 1, 2, 3]);
+        // Roughly uniform: each half of the range gets about half the draws.
+        let low = draw(100_000, 5_000, 1)
+            .iter()
+            .filter(|&&i| i < 50_000)
+            .count();
+        assert!((2_300..2_700).contains(&low), "{low}");
     }
 
     #[test]
