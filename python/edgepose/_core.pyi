@@ -167,6 +167,34 @@ class ModelIndex:
         max_iterations: int,
         max_distance: float,
     ) -> IcpResults: ...
+    def pose_distances(
+        self,
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        reference: int,
+        symmetric: bool,
+        points: int,
+    ) -> npt.NDArray[np.float64]: ...
+    def flip_margin(
+        self,
+        keypoints: npt.NDArray[np.float32],
+        observed: npt.NDArray[np.float32],
+        cloud: npt.NDArray[np.float32],
+        spacing: float,
+        rotation: npt.NDArray[np.float64],
+        translation: npt.NDArray[np.float64],
+        own_net: float,
+        centroid: npt.NDArray[np.float64],
+        axes: npt.NDArray[np.float64],
+        align_iterations: int,
+        align_distance: float,
+        inlier_distance: float,
+        free_space_tolerance: float,
+        model_stride: int,
+        rival_distance: float,
+        rival_points: int,
+        symmetric: bool,
+    ) -> float: ...
     def pair_poses(
         self, cloud: npt.NDArray[np.float32], scene_points: int, reference_stride: int, poses: int
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...

@@ -5,6 +5,7 @@
 //! Python; the pyo3 layer lives in [`python`] behind the `python` feature.
 
 pub mod error;
+pub mod flips;
 pub mod grouping;
 pub mod index;
 pub mod maps;

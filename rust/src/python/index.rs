@@ -1,14 +1,18 @@
 //! `ModelIndex`: the model's kd-tree for verification, scoring and ICP, and
 //! `IcpResults`, ICP's typed outcome.
 
-use numpy::{PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3};
+use numpy::{
+    PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3,
+};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use super::arrays::{poses_from, rotations_array, translations_array, triples};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
-use crate::index::ModelIndex;
+use crate::flips::{flip_margin, pose_distances, FlipSettings};
+use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::refine::IcpResult;
 use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
@@ -160,6 +164,116 @@ impl PyModelIndex {
             )
                 .into_pyobject(py)
                 .map(|t| t.into_any())
+        })
+    }
+
+    /// ADD (ADD-S when `symmetric`) of each pose (model → camera:
+    /// `rotations` (H, 3, 3), `translations` (H, 3)) from pose `reference`
+    /// of them, on the model's first `points` points, metres: (H,) float64.
+    fn pose_distances<'py>(
+        &self,
+        py: Python<'py>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+        reference: usize,
+        symmetric: bool,
+        points: usize,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        guarded(|| {
+            let poses = poses_from(&rotations, &translations)?;
+            let Some(target) = poses.get(reference) else {
+                return Err(PyValueError::new_err(format!(
+                    "reference {reference} is not one of the {} poses",
+                    poses.len()
+                )));
+            };
+            let d = py.detach(|| pose_distances(&self.inner, &poses, target, symmetric, points));
+            Ok(PyArray1::from_vec(py, d))
+        })
+    }
+
+    /// The flip margin of the pose (`rotation` (3, 3), `translation` (3,),
+    /// model → camera) whose inlier fraction minus free-space violation on
+    /// the `observed` points is `own_net`: see the core's `flips` module.
+    /// `keypoints`, `observed` and `cloud` (with its point `spacing`) are
+    /// the query's; `centroid` (3,) and `axes` (3, 3), one unit axis per
+    /// column, the model points' centroid and principal axes (model frame).
+    #[allow(clippy::too_many_arguments)]
+    fn flip_margin<'py>(
+        &self,
+        py: Python<'py>,
+        keypoints: PyReadonlyArray2<'py, f32>,
+        observed: PyReadonlyArray2<'py, f32>,
+        cloud: PyReadonlyArray2<'py, f32>,
+        spacing: f64,
+        rotation: PyReadonlyArray2<'py, f64>,
+        translation: PyReadonlyArray1<'py, f64>,
+        own_net: f64,
+        centroid: PyReadonlyArray1<'py, f64>,
+        axes: PyReadonlyArray2<'py, f64>,
+        align_iterations: usize,
+        align_distance: f64,
+        inlier_distance: f64,
+        free_space_tolerance: f64,
+        model_stride: usize,
+        rival_distance: f64,
+        rival_points: usize,
+        symmetric: bool,
+    ) -> PyResult<f64> {
+        guarded(|| {
+            let k = cloud_triples(&keypoints, "keypoints")?;
+            let o = cloud_triples(&observed, "observed")?;
+            let c = cloud_triples(&cloud, "cloud")?;
+            let vector =
+                |a: &PyReadonlyArray1<'py, f64>, name: &str| -> PyResult<nalgebra::Vector3<f64>> {
+                    match a.as_slice() {
+                        Ok([x, y, z]) => Ok(nalgebra::Vector3::new(*x, *y, *z)),
+                        _ => Err(PyValueError::new_err(format!(
+                            "{name} must be 3 contiguous values"
+                        ))),
+                    }
+                };
+            let matrix =
+                |a: &PyReadonlyArray2<'py, f64>, name: &str| -> PyResult<nalgebra::Matrix3<f64>> {
+                    let view = a.as_array();
+                    if view.shape() != [3, 3] {
+                        return Err(PyValueError::new_err(format!("{name} must be 3 × 3")));
+                    }
+                    Ok(nalgebra::Matrix3::from_fn(|i, j| view[[i, j]]))
+                };
+            let pose = Pose {
+                rotation: matrix(&rotation, "rotation")?,
+                translation: vector(&translation, "translation")?,
+            };
+            let centroid = vector(&centroid, "centroid")?;
+            let axes = matrix(&axes, "axes")?;
+            let axes = [0, 1, 2].map(|j| axes.column(j).into_owned());
+            let settings = FlipSettings {
+                align_iterations,
+                align_distance,
+                score: ScoreSettings {
+                    inlier_distance,
+                    free_space_tolerance,
+                    model_stride,
+                },
+                rival_distance,
+                rival_points,
+                symmetric,
+            };
+            Ok(py.detach(|| {
+                let grid = DepthGrid::new(c, spacing, 2.0);
+                flip_margin(
+                    &self.inner,
+                    k,
+                    o,
+                    &grid,
+                    &pose,
+                    own_net,
+                    &centroid,
+                    &axes,
+                    &settings,
+                )
+            }))
         })
     }
 

@@ -1,0 +1,268 @@
+//! How far apart two poses are, and how much better a pose explains a view
+//! than itself turned half about each principal axis of the model (the
+//! confidence's flip margin): the mistakes a search makes on a
+//! near-symmetric view (a banana end for end, a box whose telling details
+//! are hidden). Poses are model frame → camera, metres.
+
+use std::f64::consts::PI;
+
+use nalgebra::{Rotation3, Unit, Vector3};
+
+use crate::index::{ModelIndex, Pose};
+use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
+use crate::Point3;
+
+/// ADD of each of `poses` from `reference` on the model's first `points`
+/// points (the first farthest-point samples: spread over the model),
+/// metres; ADD-S (each point to the nearest point of the other pose) when
+/// the object is `symmetric`.
+pub fn pose_distances(
+    index: &ModelIndex,
+    poses: &[Pose],
+    reference: &Pose,
+    symmetric: bool,
+    points: usize,
+) -> Vec<f64> {
+    let model = &index.points()[..points.min(index.len())];
+    let target: Vec<Vector3<f64>> = model.iter().map(|p| reference.apply(p)).collect();
+    poses
+        .iter()
+        .map(|pose| {
+            let total: f64 = model
+                .iter()
+                .zip(&target)
+                .map(|(p, own)| {
+                    let moved = pose.apply(p);
+                    if symmetric {
+                        let nearest = target
+                            .iter()
+                            .map(|t| (moved - t).norm_squared())
+                            .fold(f64::INFINITY, f64::min);
+                        nearest.sqrt()
+                    } else {
+                        (moved - own).norm()
+                    }
+                })
+                .sum();
+            total / model.len().max(1) as f64
+        })
+        .collect()
+}
+
+/// Tuning of [`flip_margin`]; distances in metres.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FlipSettings {
+    /// Keypoint alignment of each turned pose: iterations and pairing distance.
+    pub align_iterations: usize,
+    pub align_distance: f64,
+    /// How the turned poses are scored (as the hypotheses are).
+    pub score: ScoreSettings,
+    /// A turned pose farther than this from the pose is a rival ...
+    pub rival_distance: f64,
+    /// ... measured on this many model points ([`pose_distances`]) ...
+    pub rival_points: usize,
+    /// ... with ADD-S for a symmetric object (its turns may be symmetries).
+    pub symmetric: bool,
+}
+
+/// How much better `pose` explains the view than itself turned half about
+/// each of the model's principal `axes` (unit, model frame) through the
+/// model points' `centroid`, each turned pose moved (not turned) so the
+/// query's `keypoints` land on the model (as candidates are): `own_net`
+/// (the pose's inlier fraction minus its free-space violation on the
+/// `observed` points and the `grid` of the whole cloud) minus the best
+/// turned pose's that is a different pose. 1 when every turn is a symmetry.
+#[allow(clippy::too_many_arguments)]
+pub fn flip_margin(
+    index: &ModelIndex,
+    keypoints: &[Point3],
+    observed: &[Point3],
+    grid: &DepthGrid,
+    pose: &Pose,
+    own_net: f64,
+    centroid: &Vector3<f64>,
+    axes: &[Vector3<f64>; 3],
+    settings: &FlipSettings,
+) -> f64 {
+    let turned: Vec<Pose> = axes
+        .iter()
+        .map(|axis| {
+            let half_turn = Rotation3::from_axis_angle(&Unit::new_normalize(*axis), PI);
+            let rotation = pose.rotation * half_turn.matrix();
+            Pose {
+                rotation,
+                translation: pose.translation + pose.rotation * centroid - rotation * centroid,
+            }
+        })
+        .collect();
+    let turned = align_translations(
+        index,
+        keypoints,
+        &turned,
+        settings.align_iterations,
+        settings.align_distance,
+    );
+    let distances = pose_distances(
+        index,
+        &turned,
+        pose,
+        settings.symmetric,
+        settings.rival_points,
+    );
+    let rivals: Vec<Pose> = turned
+        .into_iter()
+        .zip(distances)
+        .filter(|(_, distance)| *distance > settings.rival_distance)
+        .map(|(turned, _)| turned)
+        .collect();
+    if rivals.is_empty() {
+        return 1.0;
+    }
+    let best_rival = score_poses(index, observed, grid, &rivals, &settings.score)
+        .iter()
+        .map(|s| s.inlier_fraction - s.free_space_violation)
+        .fold(f64::NEG_INFINITY, f64::max);
+    own_net - best_rival
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Matrix3;
+
+    /// An elongated model: a 20 × 6 × 2 cm block of points with a post at one end.
+    fn bar() -> ModelIndex {
+        let mut points = Vec::new();
+        for i in 0..40 {
+            for j in 0..12 {
+                for k in 0..4 {
+                    let (x, y, z) = (
+                        i as f32 * 0.005 - 0.1,
+                        j as f32 * 0.005 - 0.03,
+                        k as f32 * 0.005,
+                    );
+                    points.push([x, y, z]);
+                }
+            }
+        }
+        for i in 0..300 {
+            // The telling bump: a 2 × 2 × 5 cm post at one end.
+            let (x, y, z) = ((i % 5) as f32, ((i / 5) % 5) as f32, (i / 25) as f32);
+            points.push([0.08 + 0.004 * x, -0.01 + 0.004 * y, 0.02 + 0.004 * z]);
+        }
+        let normals = vec![[0.0, 0.0, 1.0]; points.len()];
+        ModelIndex::new(points, normals)
+    }
+
+    #[test]
+    fn add_and_add_s_between_poses() {
+        let index = bar();
+        let at = |x: f64| Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(x, 0.0, 0.5),
+        };
+        let d = pose_distances(&index, &[at(0.0), at(0.01)], &at(0.0), false, 64);
+        assert!(d[0].abs() < 1e-12 && (d[1] - 0.01).abs() < 1e-9, "{d:?}");
+        let half_turn = Pose {
+            rotation: *Rotation3::from_axis_angle(&Vector3::z_axis(), PI).matrix(),
+            translation: Vector3::new(0.0, 0.0, 0.5),
+        };
+        // Turned half about z, the bar lies on itself (all but the post).
+        let all = index.len();
+        let plain = pose_distances(&index, &[half_turn], &at(0.0), false, all)[0];
+        let symmetric = pose_distances(&index, &[half_turn], &at(0.0), true, all)[0];
+        assert!(symmetric < 0.2 * plain, "ADD-S {symmetric} vs ADD {plain}");
+    }
+
+    #[test]
+    fn the_true_pose_beats_its_flips_and_a_flip_loses_to_the_truth() {
+        let index = bar();
+        let truth = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, 0.6),
+        };
+        // The camera sees the model as posed (every point, the bump included).
+        let observed: Vec<Point3> = index
+            .points()
+            .iter()
+            .step_by(3)
+            .map(|p| {
+                let q = truth.apply(p);
+                [q.x as f32, q.y as f32, q.z as f32]
+            })
+            .collect();
+        let grid = DepthGrid::new(&observed, 0.005, 2.0);
+        let score = ScoreSettings {
+            inlier_distance: 0.004,
+            free_space_tolerance: 0.006,
+            model_stride: 4,
+        };
+        let settings = FlipSettings {
+            align_iterations: 3,
+            align_distance: 0.02,
+            score,
+            rival_distance: 0.02,
+            rival_points: 64,
+            symmetric: false,
+        };
+        let model: Vec<Vector3<f64>> = index
+            .points()
+            .iter()
+            .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+            .collect();
+        let centroid = model.iter().sum::<Vector3<f64>>() / model.len() as f64;
+        let axes = [Vector3::x(), Vector3::y(), Vector3::z()];
+        let keypoints = &observed[..32];
+        let net = |pose: &Pose| {
+            let s = score_poses(&index, &observed, &grid, &[*pose], &score)[0];
+            s.inlier_fraction - s.free_space_violation
+        };
+        let margin = flip_margin(
+            &index,
+            keypoints,
+            &observed,
+            &grid,
+            &truth,
+            net(&truth),
+            &centroid,
+            &axes,
+            &settings,
+        );
+        assert!(margin > 0.05, "true pose margin {margin}");
+        let flipped = Pose {
+            rotation: *Rotation3::from_axis_angle(&Vector3::z_axis(), PI).matrix(),
+            translation: truth.translation + centroid
+                - Rotation3::from_axis_angle(&Vector3::z_axis(), PI) * centroid,
+        };
+        let margin = flip_margin(
+            &index,
+            keypoints,
+            &observed,
+            &grid,
+            &flipped,
+            net(&flipped),
+            &centroid,
+            &axes,
+            &settings,
+        );
+        assert!(margin < 0.0, "flipped pose margin {margin}");
+        let symmetric = FlipSettings {
+            rival_distance: 1.0,
+            ..settings
+        };
+        assert_eq!(
+            flip_margin(
+                &index,
+                keypoints,
+                &observed,
+                &grid,
+                &truth,
+                net(&truth),
+                &centroid,
+                &axes,
+                &symmetric
+            ),
+            1.0
+        );
+    }
+}
