@@ -129,3 +129,11 @@ def test_the_core_raises_edgeposes_own_exceptions():
         _core.StandardModel(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(3), 1.0, 1.0, 0.1)
     with pytest.raises(InvalidCloudError, match="empty"):
         _core.normalize_to_map(np.zeros((0, 3), np.float32), 1.0, 16)
+    with pytest.raises(ValueError, match="spacing"):
+        _core.DepthGrid(np.zeros((4, 3), np.float32), float("nan"))
+    with pytest.raises(InvalidCloudError, match=r"shape \(N, 3\)"):
+        _core.DepthGrid(np.zeros((4, 2), np.float32), 0.01)
+    with pytest.raises(InvalidCloudError, match="valid points"):
+        _core.clean_cloud(np.full((40, 3), np.nan), 0.1, 2048, 0, 32, 1e6, 5.0, 0.02)
+    with pytest.raises(ValueError, match="reference 2"):
+        index.pose_distances(np.eye(3)[None].repeat(2, 0), np.zeros((2, 3)), 2, False, 64)

@@ -87,9 +87,10 @@ def test_free_space_separates_the_true_pose_from_a_turned_over_one(drill):
     translations = np.stack([t_model, t_model])
     d = codebook.model.diameter
     fit, inliers, violation, _, _ = codebook.index.score(
-        query.keypoints, query.points, query.spacing, rotations, translations, 0.02 * d, 0.03 * d, 1
+        query.keypoints, query.free_space, rotations, translations, 0.02 * d, 0.03 * d, 1
     )
     assert violation[0] < 0.02 and inliers[0] > 0.9, (violation, inliers)
+    assert query.free_space is query.free_space  # built once per query
     assert violation[1] > 0.2, violation
 
 

@@ -118,6 +118,9 @@ class IcpResults:
     @property
     def rmse(self) -> npt.NDArray[np.float64]: ...
 
+class DepthGrid:
+    def __init__(self, cloud: npt.NDArray[np.float32], spacing: float) -> None: ...
+
 class ModelIndex:
     def __init__(self, model: StandardModel) -> None: ...
     def __len__(self) -> int: ...
@@ -145,8 +148,7 @@ class ModelIndex:
     def score(
         self,
         observed: npt.NDArray[np.float32],
-        cloud: npt.NDArray[np.float32],
-        spacing: float,
+        free_space: DepthGrid,
         rotations: npt.NDArray[np.float64],
         translations: npt.NDArray[np.float64],
         inlier_distance: float,
@@ -179,8 +181,7 @@ class ModelIndex:
         self,
         keypoints: npt.NDArray[np.float32],
         observed: npt.NDArray[np.float32],
-        cloud: npt.NDArray[np.float32],
-        spacing: float,
+        free_space: DepthGrid,
         rotation: npt.NDArray[np.float64],
         translation: npt.NDArray[np.float64],
         own_net: float,

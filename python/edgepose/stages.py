@@ -22,6 +22,7 @@ the model's centre); units are metres. Every tuning value lives in
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -51,6 +52,12 @@ class Query:
     keypoints: np.ndarray
     """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
     _samples: dict = field(default_factory=dict, repr=False)
+
+    @cached_property
+    def free_space(self) -> _core.DepthGrid:
+        """The nearest observed depth along each ray of ``points`` (what the
+        free-space test of :func:`score_poses` reads), built once per query."""
+        return _core.DepthGrid(self.points, self.spacing)
 
     def sample(self, count: int, seed: int) -> np.ndarray:
         """:func:`subsample` of ``points`` (``count``, ``seed``), drawn once
@@ -196,8 +203,7 @@ def flip_margin(
     return codebook.index.flip_margin(
         query.keypoints,
         query.sample(settings.hypothesis_points, settings.subsample_seed),
-        query.points,
-        query.spacing,
+        query.free_space,
         np.ascontiguousarray(R, dtype=np.float64),
         np.ascontiguousarray(t, dtype=np.float64),
         float(scores.inlier_fraction[0] - scores.free_space_violation[0]),
@@ -229,8 +235,7 @@ def score_poses(
     d = codebook.model.diameter
     fit, inliers, violation, off_silhouette, constraint = codebook.index.score(
         observed,
-        query.points,
-        query.spacing,
+        query.free_space,
         np.ascontiguousarray(rotations),
         np.ascontiguousarray(translations),
         inlier_distance,

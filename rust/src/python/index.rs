@@ -24,6 +24,32 @@ fn cloud_triples<'a>(array: &'a PyReadonlyArray2<'_, f32>, name: &str) -> PyResu
     triples(array, name).map_err(InvalidCloudError::new_err)
 }
 
+/// The nearest observed depth along each ray of an observed cloud (camera
+/// frame, metres): what scoring's free-space test reads. Built once per
+/// query, with cells of about two point `spacing`s. Immutable.
+#[pyclass(frozen, name = "DepthGrid", module = "edgepose._core")]
+pub struct PyDepthGrid {
+    inner: DepthGrid,
+}
+
+#[pymethods]
+impl PyDepthGrid {
+    #[new]
+    fn new(py: Python<'_>, cloud: PyReadonlyArray2<'_, f32>, spacing: f64) -> PyResult<Self> {
+        guarded(|| {
+            let c = cloud_triples(&cloud, "cloud")?;
+            if !(spacing.is_finite() && spacing >= 0.0) {
+                return Err(PyValueError::new_err(format!(
+                    "spacing must be finite and non-negative, got {spacing}"
+                )));
+            }
+            Ok(Self {
+                inner: py.detach(|| DepthGrid::new(c, spacing, 2.0)),
+            })
+        })
+    }
+}
+
 /// A model's points and normals (model frame, metres) with a kd-tree, for
 /// verification, scoring and ICP. Immutable: safe to share between threads.
 #[pyclass(frozen, name = "ModelIndex", module = "edgepose._core")]
@@ -114,8 +140,7 @@ impl PyModelIndex {
 
     /// Scores each candidate pose (model → camera: `rotations` (C, 3, 3),
     /// `translations` (C, 3)) against the `observed` points and the whole
-    /// observed `cloud` (camera frame, metres; its point `spacing` sizes the
-    /// free-space grid): `(fit (C,) metres, inlier_fraction (C,),
+    /// observed cloud's `free_space` grid: `(fit (C,) metres, inlier_fraction (C,),
     /// free_space_violation (C,), off_silhouette (C,),
     /// translation_constraint (C,))` (see the core's `scoring` module).
     #[allow(clippy::too_many_arguments)]
@@ -123,8 +148,7 @@ impl PyModelIndex {
         &self,
         py: Python<'py>,
         observed: PyReadonlyArray2<'py, f32>,
-        cloud: PyReadonlyArray2<'py, f32>,
-        spacing: f64,
+        free_space: &Bound<'py, PyDepthGrid>,
         rotations: PyReadonlyArray3<'py, f64>,
         translations: PyReadonlyArray2<'py, f64>,
         inlier_distance: f64,
@@ -133,14 +157,14 @@ impl PyModelIndex {
     ) -> PyResult<Bound<'py, PyAny>> {
         guarded(|| {
             let o = cloud_triples(&observed, "observed")?;
-            let c = cloud_triples(&cloud, "cloud")?;
+            let grid = &free_space.get().inner;
             let poses = poses_from(&rotations, &translations)?;
-            if ![spacing, inlier_distance, free_space_tolerance]
+            if ![inlier_distance, free_space_tolerance]
                 .iter()
                 .all(|v| v.is_finite() && *v >= 0.0)
             {
                 return Err(PyValueError::new_err(
-                    "spacing and distances must be finite and non-negative",
+                    "distances must be finite and non-negative",
                 ));
             }
             let settings = ScoreSettings {
@@ -148,10 +172,7 @@ impl PyModelIndex {
                 free_space_tolerance,
                 model_stride,
             };
-            let scores = py.detach(|| {
-                let grid = DepthGrid::new(c, spacing, 2.0);
-                score_poses(&self.inner, o, &grid, &poses, &settings)
-            });
+            let scores = py.detach(|| score_poses(&self.inner, o, grid, &poses, &settings));
             (
                 PyArray1::from_vec(py, scores.iter().map(|s| s.fit).collect()),
                 PyArray1::from_vec(py, scores.iter().map(|s| s.inlier_fraction).collect()),
@@ -195,8 +216,7 @@ impl PyModelIndex {
     /// The flip margin of the pose (`rotation` (3, 3), `translation` (3,),
     /// model → camera) whose inlier fraction minus free-space violation on
     /// the `observed` points is `own_net`: see the core's `flips` module.
-    /// `keypoints`, `observed` and `cloud` (with its point `spacing`) are
-    /// the query's; `centroid` (3,) and `axes` (3, 3), one unit axis per
+    /// `keypoints`, `observed` and `free_space` are the query's; `centroid` (3,) and `axes` (3, 3), one unit axis per
     /// column, the model points' centroid and principal axes (model frame).
     #[allow(clippy::too_many_arguments)]
     fn flip_margin<'py>(
@@ -204,8 +224,7 @@ impl PyModelIndex {
         py: Python<'py>,
         keypoints: PyReadonlyArray2<'py, f32>,
         observed: PyReadonlyArray2<'py, f32>,
-        cloud: PyReadonlyArray2<'py, f32>,
-        spacing: f64,
+        free_space: &Bound<'py, PyDepthGrid>,
         rotation: PyReadonlyArray2<'py, f64>,
         translation: PyReadonlyArray1<'py, f64>,
         own_net: f64,
@@ -223,7 +242,7 @@ impl PyModelIndex {
         guarded(|| {
             let k = cloud_triples(&keypoints, "keypoints")?;
             let o = cloud_triples(&observed, "observed")?;
-            let c = cloud_triples(&cloud, "cloud")?;
+            let grid = &free_space.get().inner;
             let vector =
                 |a: &PyReadonlyArray1<'py, f64>, name: &str| -> PyResult<nalgebra::Vector3<f64>> {
                     match a.as_slice() {
@@ -261,12 +280,11 @@ impl PyModelIndex {
                 symmetric,
             };
             Ok(py.detach(|| {
-                let grid = DepthGrid::new(c, spacing, 2.0);
                 flip_margin(
                     &self.inner,
                     k,
                     o,
-                    &grid,
+                    grid,
                     &pose,
                     own_net,
                     &centroid,
