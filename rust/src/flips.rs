@@ -217,52 +217,32 @@ mod tests {
             let s = score_poses(&index, &observed, &grid, &[*pose], &score)[0];
             s.inlier_fraction - s.free_space_violation
         };
-        let margin = flip_margin(
-            &index,
-            keypoints,
-            &observed,
-            &grid,
-            &truth,
-            net(&truth),
-            &centroid,
-            &axes,
-            &settings,
-        );
-        assert!(margin > 0.05, "true pose margin {margin}");
-        let flipped = Pose {
-            rotation: *Rotation3::from_axis_angle(&Vector3::z_axis(), PI).matrix(),
-            translation: truth.translation + centroid
-                - Rotation3::from_axis_angle(&Vector3::z_axis(), PI) * centroid,
-        };
-        let margin = flip_margin(
-            &index,
-            keypoints,
-            &observed,
-            &grid,
-            &flipped,
-            net(&flipped),
-            &centroid,
-            &axes,
-            &settings,
-        );
-        assert!(margin < 0.0, "flipped pose margin {margin}");
-        let symmetric = FlipSettings {
-            rival_distance: 1.0,
-            ..settings
-        };
-        assert_eq!(
+        let margin_of = |pose: &Pose, settings: &FlipSettings| {
             flip_margin(
                 &index,
                 keypoints,
                 &observed,
                 &grid,
-                &truth,
-                net(&truth),
+                pose,
+                net(pose),
                 &centroid,
                 &axes,
-                &symmetric
-            ),
-            1.0
-        );
+                settings,
+            )
+        };
+        let margin = margin_of(&truth, &settings);
+        assert!(margin > 0.05, "true pose margin {margin}");
+        let half_turn = Rotation3::from_axis_angle(&Vector3::z_axis(), PI);
+        let flipped = Pose {
+            rotation: *half_turn.matrix(),
+            translation: truth.translation + centroid - half_turn * centroid,
+        };
+        let margin = margin_of(&flipped, &settings);
+        assert!(margin < 0.0, "flipped pose margin {margin}");
+        let symmetric = FlipSettings {
+            rival_distance: 1.0,
+            ..settings
+        };
+        assert_eq!(margin_of(&truth, &symmetric), 1.0);
     }
 }

@@ -251,46 +251,42 @@ fn clean_cloud<'py>(
             min_extent_diameters,
         };
         let cleaned = if let Ok(array) = cloud.extract::<PyReadonlyArray2<'py, f32>>() {
-            let rows = array.as_array();
-            if rows.ncols() != 3 {
-                return Err(InvalidCloudError::new_err(format!(
-                    "cloud must have shape (N, 3), got {:?}",
-                    rows.shape()
-                )));
-            }
-            py.detach(|| {
-                query::clean_cloud(
-                    rows.nrows(),
-                    |i| [0, 1, 2].map(|k| rows[[i, k]] as f64),
-                    diameter,
-                    &settings,
-                )
-            })
+            clean_rows(py, &array, diameter, &settings)?
         } else {
             let array = cloud.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
                 InvalidCloudError::new_err(
                     "cloud must be a float32 or float64 array of shape (N, 3)",
                 )
             })?;
-            let rows = array.as_array();
-            if rows.ncols() != 3 {
-                return Err(InvalidCloudError::new_err(format!(
-                    "cloud must have shape (N, 3), got {:?}",
-                    rows.shape()
-                )));
-            }
-            py.detach(|| {
-                query::clean_cloud(
-                    rows.nrows(),
-                    |i| [0, 1, 2].map(|k| rows[[i, k]]),
-                    diameter,
-                    &settings,
-                )
-            })
+            clean_rows(py, &array, diameter, &settings)?
         };
         let points = cleaned.map_err(|problem| InvalidCloudError::new_err(problem.to_string()))?;
         Ok(points_array(py, &points))
     })
+}
+
+/// [`query::clean_cloud`] of an (N, 3) array of any strides, without the GIL.
+fn clean_rows<T: numpy::Element + Copy + Into<f64> + Sync>(
+    py: Python<'_>,
+    array: &PyReadonlyArray2<'_, T>,
+    diameter: f64,
+    settings: &CleanSettings,
+) -> PyResult<Result<Vec<crate::Point3>, query::CloudProblem>> {
+    let rows = array.as_array();
+    if rows.ncols() != 3 {
+        return Err(InvalidCloudError::new_err(format!(
+            "cloud must have shape (N, 3), got {:?}",
+            rows.shape()
+        )));
+    }
+    Ok(py.detach(|| {
+        query::clean_cloud(
+            rows.nrows(),
+            |i| [0, 1, 2].map(|k| rows[[i, k]].into()),
+            diameter,
+            settings,
+        )
+    }))
 }
 
 /// [`query::prepare_query`] (stage 1) on cleaned (N, 3) float32 `points`:
