@@ -42,6 +42,8 @@ FEATURES: dict[str, str] = {
     "flip_margin": "inlier fraction minus free-space violation of the pose minus that of the pose turned half "
     "about a principal axis of the model and moved onto the view (the best such, if a different pose); "
     "1 when none is",
+    "rmse_ratio": "coarse ICP RMSE of the chosen hypothesis over the lowest of the rival hypotheses (more than "
+    "0.1 d away) that competed with it for the pick; 0 when none competed",
 }
 
 
@@ -89,6 +91,7 @@ TERMS: dict[str, tuple[Callable[[float], float], ...]] = {
     "observed_extent": (_value, _capped_extent),
     "translation_constraint": (_value, _log_share),
     "flip_margin": (_value, _clipped_margin, _no_rival),
+    "rmse_ratio": (_value,),
 }
 
 
@@ -167,6 +170,7 @@ def evidence_of(
     observed_extent: float,
     translation_constraint: float,
     flip_margin: float,
+    rmse_ratio: float,
 ) -> dict[str, float]:
     """The evidence (:data:`FEATURES`) as a dict of floats."""
     return {
@@ -182,4 +186,5 @@ def evidence_of(
         "observed_extent": float(observed_extent),
         "translation_constraint": float(translation_constraint),
         "flip_margin": float(flip_margin),
+        "rmse_ratio": float(rmse_ratio),
     }

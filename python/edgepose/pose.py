@@ -250,6 +250,7 @@ def pose_from_query(
             observed_extent=observed_extent,
             translation_constraint=tight.translation_constraint[0],
             flip_margin=flip_margin(query, codebook, result.R, result.t, tight, settings) if flips is None else flips,
+            rmse_ratio=result.rmse_ratio,
         )
         return evidence, encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
 

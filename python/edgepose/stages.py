@@ -261,6 +261,11 @@ class Refined(NamedTuple):
     rival that is a different pose (more than ``RIVAL_DISTANCE`` × d apart,
     symmetries aside): inlier fraction minus free-space violation, winner's
     minus rival's; 1 when no rival was refined."""
+    rmse_ratio: float = 0.0
+    """The chosen hypothesis's coarse ICP RMSE over the lowest of the rivals
+    that competed with it (explaining nearly as many points, within the
+    free-space margin): near 1 when the pick between different poses was a
+    toss-up, 0 when no rival competed."""
 
 
 def refine_hypotheses(
@@ -312,8 +317,16 @@ def refine_hypotheses(
     net = scores.inlier_fraction - scores.free_space_violation
     rivals = usable & (pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d)
     margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
+    competitors = rivals & competing
+    rmse_ratio = float(rmse[pick] / rmse[competitors].min()) if competitors.any() else 0.0
     best = Refined(
-        int(starts[pick]), hyp_R[pick], hyp_t[pick], PoseScores(*(s[pick : pick + 1] for s in scores)), True, margin
+        int(starts[pick]),
+        hyp_R[pick],
+        hyp_t[pick],
+        PoseScores(*(s[pick : pick + 1] for s in scores)),
+        True,
+        margin,
+        rmse_ratio,
     )
     if settings.icp_iterations > 0:
         if ("fine", best.candidate) not in cache:
@@ -332,7 +345,7 @@ def refine_hypotheses(
             and near_the_cloud(query, codebook, fine_t, settings)[0]
         ):
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
-            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True, margin)
+            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True, margin, rmse_ratio)
     return best
 
 

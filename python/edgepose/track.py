@@ -173,6 +173,7 @@ class Tracker:
             observed_extent=math.hypot(*box_sides(seen)) / d,
             translation_constraint=tight.translation_constraint[0],
             flip_margin=last.evidence.get("flip_margin", 1.0),
+            rmse_ratio=last.evidence.get("rmse_ratio", 0.0),
         )
         confidence = self.encoder.confidence.probability(evidence) if self.encoder.confidence else float("nan")
         elapsed = time.perf_counter() - t0
