@@ -131,3 +131,31 @@ def test_a_symmetric_objects_half_turns_are_no_rivals():
     for seed in (1, 2):
         pose = edgepose.estimate(render_view(box, seed=seed).cloud, codebook)
         assert pose.evidence["flip_margin"] == 1.0
+
+
+def test_the_rmse_ratio_compares_the_pick_with_the_rivals_that_competed():
+    """A block with a post on top, seen from below (the post hidden): the
+    pose and its half turn about the block's vertical axis explain the view
+    alike, so the turn competes and the ratio of their ICP RMSEs is in
+    (0, 1]; with no rival the ratio is 0."""
+    from edgepose.stages import prepare_query, refine_hypotheses
+    from edgepose.views import rotation_about
+
+    block = trimesh.creation.box([0.16, 0.06, 0.03])
+    post = trimesh.creation.box([0.04, 0.04, 0.04])
+    post.apply_translation([0.06, 0.0, 0.035])
+    mesh = trimesh.util.concatenate([block, post])
+    codebook = edgepose.build_codebook(mesh)
+    assert not codebook.symmetry.symmetric
+    T = np.eye(4)
+    T[:3, :3] = rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(20))
+    T[:3, 3] = [0.0, 0.0, 0.6]
+    query = prepare_query(render_view(mesh, T_cam_obj=T, seed=1).cloud, codebook)
+    centre = codebook.model.centre
+    half_turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi)
+    R = np.stack([T[:3, :3], T[:3, :3] @ half_turn])
+    t = np.stack([T[:3, 3] + r @ centre for r in R])  # model frame -> camera
+    both = refine_hypotheses(query, codebook, R, t, np.array([0.0, 1.0]))
+    assert 0.0 < both.rmse_ratio <= 1.0, both.rmse_ratio
+    alone = refine_hypotheses(query, codebook, R[:1], t[:1], np.array([0.0]))
+    assert alone.rmse_ratio == 0.0 and alone.margin == 1.0

@@ -12,6 +12,11 @@ use crate::Point3;
 /// (metres) together move less than this: 10 µm, far below depth noise.
 pub const CONVERGED: f64 = 1e-5;
 
+/// Damping of ICP's normal equations, relative to their mean diagonal: far
+/// below any constrained direction's curvature, enough to make a view's
+/// unconstrained directions solvable (a zero step along them).
+const DAMPING: f64 = 1e-9;
+
 /// [`ModelIndex::refine_each`] runs this many starts or more in parallel:
 /// the second search's 5–8 new hypotheses, not the first search's 3.
 pub const PARALLEL_STARTS: usize = 4;
@@ -118,7 +123,14 @@ impl ModelIndex {
                 inliers += 1;
                 sum_sq += r * r;
             }
-            let Some(chol) = jtj.cholesky() else { break };
+            // A view that leaves a direction unconstrained (one face of a
+            // box: no normal along it) makes JᵀJ singular; a little damping
+            // keeps the step at zero along that direction instead of ending
+            // ICP with no result (Levenberg–Marquardt with a fixed λ).
+            let damping = DAMPING * (jtj.trace() / 6.0).max(f64::MIN_POSITIVE);
+            let Some(chol) = (jtj + Matrix6::identity() * damping).cholesky() else {
+                break;
+            };
             let x = chol.solve(&(-jtr));
             let omega = Vector3::new(x[0], x[1], x[2]);
             let delta = Pose {
