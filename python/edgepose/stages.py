@@ -345,7 +345,7 @@ def refine_hypotheses(
             and near_the_cloud(query, codebook, fine_t, settings)[0]
         ):
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
-            best = Refined(best.candidate, fine_R[0], fine_t[0], fine, True, margin, rmse_ratio)
+            best = best._replace(R=fine_R[0], t=fine_t[0], scores=fine)
     return best
 
 
