@@ -78,7 +78,39 @@ def test_asymmetric_parts_have_none(drill):
     peg = trimesh.creation.box([0.02, 0.02, 0.03])
     peg.apply_translation([0.03, 0.02, 0.065])
     lopsided = trimesh.util.concatenate([trimesh.creation.box([0.1, 0.08, 0.1]), peg])
-    assert detect_symmetry(load_model(lopsided)).describe() == "none"
+    assert not detect_symmetry(load_model(lopsided)).symmetric
+
+
+def test_near_turns_are_found_where_a_small_detail_breaks_a_symmetry():
+    """The box with a small peg is no symmetric object, but its half turns
+    move only the peg: near turns, each kept within NEAR_MEAN_DIAMETERS of
+    the surface and none a symmetry. Exact symmetries leave none."""
+    from edgepose.symmetry import NEAR_MEAN_DIAMETERS, doubtful_turns
+
+    peg = trimesh.creation.box([0.02, 0.02, 0.03])
+    peg.apply_translation([0.03, 0.02, 0.065])
+    model = load_model(trimesh.util.concatenate([trimesh.creation.box([0.1, 0.08, 0.1]), peg]))
+    s = detect_symmetry(model)
+    assert not s.symmetric and 1 <= len(s.near) and "near turn" in s.describe()
+    points = model.mesh_points
+    for T in s.near:
+        assert angle_deg(T[:3, :3]) > 30
+        # The turned points stay near the surface (ADD-S), though the pose differs (ADD).
+        assert add_s(points, T, np.eye(4)) <= 1.5 * NEAR_MEAN_DIAMETERS * model.diameter
+        assert pose_errors(points, T, np.eye(4), model.diameter, False).add > 0.1 * model.diameter
+    # Tested by the confidence: the near turns, then the principal half turns
+    # not among them (model frame).
+    rotations, translations = doubtful_turns(model, s)
+    assert len(s.near) <= len(rotations) <= 3 + len(s.near) and translations.shape == (len(rotations), 3)
+    assert np.allclose(rotations[0], s.near[0][:3, :3])
+    # A long box with a small peg: its near turns are its half turns about the principal axes.
+    peg = trimesh.creation.box([0.015, 0.015, 0.015])
+    peg.apply_translation([0.015, 0.025, 0.0875])
+    long_box = load_model(trimesh.util.concatenate([trimesh.creation.box([0.06, 0.1, 0.16]), peg]))
+    s = detect_symmetry(long_box)
+    assert len(s.near) == 3 and len(doubtful_turns(long_box, s)[0]) == 3
+    for exact in (trimesh.creation.box([0.06, 0.1, 0.16]), trimesh.creation.cylinder(0.03, 0.12)):
+        assert len(detect_symmetry(load_model(exact)).near) == 0
 
 
 def test_shared_ycb_meshes_match_the_hand_list(ycb_dir):
@@ -97,6 +129,7 @@ def test_codebook_stores_and_checks_its_symmetry(tmp_path):
     loaded = Codebook.load(tmp_path / "can.codebook")
     assert np.allclose(loaded.symmetry.continuous, book.symmetry.continuous, atol=1e-6)
     assert np.allclose(loaded.symmetry.discrete, book.symmetry.discrete, atol=1e-6)
+    assert np.allclose(loaded.symmetry.near, book.symmetry.near, atol=1e-6)
     # A pose carries the codebook's symmetries.
     view = edgepose.eval.render_view(mesh, seed=3)
     pose = edgepose.estimate(view.cloud, book, k=4)
@@ -111,7 +144,10 @@ def test_malformed_symmetries_are_rejected():
         Symmetry.from_json({"discrete": [], "continuous": [[0, 0, 2, 0, 0, 0]]})
     with pytest.raises(ValueError, match="NaN"):
         Symmetry.from_json({"discrete": [], "continuous": [[0, 0, float("nan"), 0, 0, 0]]})
+    with pytest.raises(ValueError, match="near turn is not a rigid turn"):
+        Symmetry.from_json({"discrete": [], "continuous": [], "near": [list(np.eye(4).ravel() * 2)]})
     assert Symmetry.from_json(json.loads(json.dumps(NO_SYMMETRY.to_json()))).describe() == "none"
+    assert len(Symmetry.from_json({"discrete": [], "continuous": []}).near) == 0
 
 
 def test_a_codebook_with_a_corrupt_symmetry_entry_does_not_load(tmp_path, drill):

@@ -39,13 +39,14 @@ from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import EdgePoseError
 from edgepose.maps import DEFAULT_MAP_POINTS, compute_maps
 from edgepose.model import DEFAULT_MODEL_POINTS, MeshSource, StandardModel, load_model
-from edgepose.symmetry import NO_SYMMETRY, Symmetry, detect_symmetry
+from edgepose.symmetry import NO_SYMMETRY, Symmetry, detect_symmetry, doubtful_turns
 from edgepose.views import DEFAULT_VIEWS, Viewpoints, fibonacci_viewpoints
 
 FORMAT = "edgepose-codebook"
 #: 2: header ``checksum`` (sha256 of the metadata and tensors) added.
 #: 3: header ``symmetry`` (the object's detected rotational symmetries) added.
-VERSION = 3
+#: 4: ``symmetry`` records the object's near turns (``Symmetry.near``) too.
+VERSION = 4
 #: A codebook file larger than this is not a codebook (bounds what loading reads).
 MAX_FILE_BYTES = 64 * 1024 * 1024
 
@@ -79,9 +80,12 @@ class Codebook:
     timings: dict = field(default_factory=dict)
     """Build time per stage, seconds (empty for a loaded codebook)."""
     index: _core.ModelIndex = field(init=False, repr=False)
+    doubtful_turns: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)
+    """The model's turns the confidence tests a pose against (:func:`edgepose.symmetry.doubtful_turns`)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "index", _core.ModelIndex(self.model.core))
+        object.__setattr__(self, "doubtful_turns", doubtful_turns(self.model, self.symmetry))
 
     def __len__(self) -> int:
         return len(self.codes)

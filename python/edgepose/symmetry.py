@@ -13,7 +13,7 @@ point on it (metres).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,6 +46,16 @@ SCREEN_MEAN_SPACINGS = 1.0
 MAX_TURNS = 60
 #: Turns closer than this (degrees) are the same turn.
 SAME_TURN_DEG = 2.0
+#: A *near turn* (not a symmetry) keeps the model's points this close to the
+#: surface on average, as a fraction of the diameter: the hypotheses' inlier
+#: distance, so a depth view can hardly tell a pose from the pose so turned
+#: (a box whose holes are small, a disc with a notch) ...
+NEAR_MEAN_DIAMETERS = 0.02
+#: ... is at least this far from the identity and from every other near
+#: turn and symmetry (degrees) ...
+NEAR_MIN_ANGLE_DEG = 30.0
+#: ... and at most this many are kept, the closest fits first.
+NEAR_MAX_TURNS = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,6 +70,11 @@ class Symmetry:
     continuous: np.ndarray
     """(A, 6) float64: each row a unit axis and a point on it; the surface is
     unchanged by any turn about it."""
+    near: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    """(K, 4, 4) float64 *near turns*: not symmetries, but turns that keep
+    the surface within ``NEAR_MEAN_DIAMETERS`` of itself, so a view may not
+    tell a pose from the pose so turned. The confidence tests them
+    (``flip_margin``); the evaluation does not forgive them (ADD)."""
 
     @property
     def symmetric(self) -> bool:
@@ -71,7 +86,8 @@ class Symmetry:
         parts = [f"continuous about ({', '.join(f'{v:.2f}' for v in row[:3])})" for row in self.continuous]
         if len(self.discrete):
             parts.append(f"{len(self.discrete)} discrete turn{'s' if len(self.discrete) > 1 else ''}")
-        return " + ".join(parts) or "none"
+        near = f" ({len(self.near)} near turn{'s' if len(self.near) > 1 else ''})" if len(self.near) else ""
+        return (" + ".join(parts) or "none") + near
 
     def transforms(self, steps: int = 36) -> np.ndarray:
         """(G, 4, 4) every turn of the group, identity first, a continuous one
@@ -88,23 +104,28 @@ class Symmetry:
         return {
             "discrete": np.round(self.discrete.reshape(-1, 16), 6).tolist(),
             "continuous": np.round(self.continuous, 6).tolist(),
+            "near": np.round(self.near.reshape(-1, 16), 6).tolist(),
         }
 
     @classmethod
     def from_json(cls, info: dict) -> Symmetry:
-        """From :meth:`to_json`'s dict; ``ValueError`` if it is not valid."""
+        """From :meth:`to_json`'s dict (no ``near`` entry: none recorded);
+        ``ValueError`` if it is not valid."""
         discrete = np.asarray(info["discrete"], dtype=np.float64).reshape(-1, 4, 4)
         continuous = np.asarray(info["continuous"], dtype=np.float64).reshape(-1, 6)
-        if not (np.isfinite(discrete).all() and np.isfinite(continuous).all()):
+        near = np.asarray(info.get("near", []), dtype=np.float64).reshape(-1, 4, 4)
+        if not (np.isfinite(discrete).all() and np.isfinite(continuous).all() and np.isfinite(near).all()):
             raise ValueError("symmetries contain NaN or infinite values")
-        R = discrete[:, :3, :3]
-        if len(R) and (
-            np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-4 or np.abs(discrete[:, 3] - [0, 0, 0, 1]).max() > 0
-        ):
-            raise ValueError("a discrete symmetry is not a rigid turn")
+        for turns, what in ((discrete, "discrete symmetry"), (near, "near turn")):
+            R = turns[:, :3, :3]
+            if len(R) and (
+                np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-4
+                or np.abs(turns[:, 3] - [0, 0, 0, 1]).max() > 0
+            ):
+                raise ValueError(f"a {what} is not a rigid turn")
         if len(continuous) and np.abs(np.linalg.norm(continuous[:, :3], axis=1) - 1).max() > 1e-4:
             raise ValueError("a continuous symmetry's axis is not a unit vector")
-        return cls(discrete, continuous)
+        return cls(discrete, continuous, near)
 
 
 NO_SYMMETRY = Symmetry(np.zeros((0, 4, 4)), np.zeros((0, 6)))
@@ -180,7 +201,71 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     shift, unshift = _transform_from(np.eye(3), model.centre), _transform_from(np.eye(3), -model.centre)
     discrete = np.stack([shift @ T @ unshift for T in group]) if group else np.zeros((0, 4, 4))
     rows = [np.concatenate([a * np.sign(a[np.argmax(np.abs(a))]), p + model.centre]) for a, p in continuous]
-    return Symmetry(discrete, np.array(rows).reshape(-1, 6))
+    near = _near_turns(index, model, screen, R, t, group, [a for a, _ in continuous])
+    near_obj = np.stack([shift @ T @ unshift for T in near]) if near else np.zeros((0, 4, 4))
+    return Symmetry(discrete, np.array(rows).reshape(-1, 6), near_obj)
+
+
+def _near_turns(
+    index: _core.ModelIndex,
+    model: StandardModel,
+    screen: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    group: list[np.ndarray],
+    continuous_axes: list[np.ndarray],
+) -> list[np.ndarray]:
+    """Near turns (model frame, 4 × 4) among the probe turns ``R``, ``t``:
+    each polished by ICP (kept unpolished when ICP slides it back towards
+    the identity), then kept when the turned model points lie on average
+    within ``NEAR_MEAN_DIAMETERS`` of the surface and it is no symmetry
+    (fails their test; none of ``group``, no turn about a
+    ``continuous_axes``), closest first."""
+    limit = NEAR_MEAN_DIAMETERS * model.diameter
+    # An unpolished probe's axis may be a few degrees off: screen at twice the limit.
+    close = index.distances(screen, R, t, True).mean(axis=1) <= 2 * limit
+    if not close.any():
+        return []
+    icp = index.refine(screen, R[close], t[close], ICP_ITERATIONS, 0.1 * model.diameter)
+    minimum = np.radians(NEAR_MIN_ANGLE_DEG)
+    polished = np.array([rotation_angle(Ri) >= minimum for Ri in icp.rotations])
+    R_c = np.where(polished[:, None, None], icp.rotations, R[close])
+    t_c = np.where(polished[:, None], icp.translations, t[close])
+    mean = index.distances(np.ascontiguousarray(model.points), R_c, t_c, True).mean(axis=1)
+    kept: list[np.ndarray] = []
+    known = [np.eye(4), *group]
+    for i in np.argsort(mean, kind="stable"):
+        if mean[i] > limit or len(kept) == NEAR_MAX_TURNS:
+            break
+        T = _transform_from(R_c[i], t_c[i])
+        if any(rotation_angle(T[:3, :3].T @ G[:3, :3]) < minimum for G in known + kept):
+            continue
+        # About a continuous axis, or across it when the object has a flip: a symmetry.
+        if any(
+            a @ T[:3, :3] @ a > np.cos(minimum) or (group and a @ T[:3, :3] @ a < -np.cos(minimum))
+            for a in continuous_axes
+        ):
+            continue
+        kept.append(T)
+    return kept
+
+
+def doubtful_turns(model: StandardModel, symmetry: Symmetry) -> tuple[np.ndarray, np.ndarray]:
+    """The turns of the model a search may mistake a pose for, model frame:
+    rotations (K, 3, 3) and translations (K, 3), metres. The object's near
+    turns (:attr:`Symmetry.near`) and the half turns about the model points'
+    principal axes through their centroid (a banana end for end) that are
+    not already among them (a box's near turns are its half turns)."""
+    # Object frame -> model frame: p_model = p_obj - centre.
+    shift, unshift = _transform_from(np.eye(3), model.centre), _transform_from(np.eye(3), -model.centre)
+    turns = [unshift @ T @ shift for T in symmetry.near]
+    centroid, axes = model.principal_axes
+    for axis in axes.T:
+        T = _turn_about(axis, centroid, np.pi)
+        if all(rotation_angle(T[:3, :3].T @ N[:3, :3]) >= np.radians(NEAR_MIN_ANGLE_DEG) for N in turns):
+            turns.append(T)
+    stacked = np.stack(turns)
+    return np.ascontiguousarray(stacked[:, :3, :3]), np.ascontiguousarray(stacked[:, :3, 3])
 
 
 def _candidate_axes(centred: np.ndarray, normals: np.ndarray) -> list[np.ndarray]:
