@@ -259,11 +259,15 @@ def pose_from_query(
     loose = loose_scores(query, codebook, result, settings)
     laps("refine_hypotheses")
     searches = 1
-    evidence, confidence = judged(found, result, loose, searches)
-    laps("confidence")
-    if (retry_k > k or pairs) and (
-        doubtful(query, codebook, result, settings, loose) or confidence < settings.retry_below_confidence
-    ):
+    may_retry = retry_k > k or pairs > 0
+    # A doubtful pose is searched again whatever its confidence: that is judged after.
+    retry = may_retry and doubtful(query, codebook, result, settings, loose)
+    evidence: dict[str, float] | None = None
+    if not retry:
+        evidence, confidence = judged(found, result, loose, searches)
+        laps("confidence")
+        retry = may_retry and confidence < settings.retry_below_confidence
+    if retry:
         if retry_k > k:
             found = found.extended(posed(k, retry_k))
         if pairs:
@@ -272,12 +276,14 @@ def pose_from_query(
             query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
         )
         searches = 2
-        flips: float | None = evidence["flip_margin"]  # the first pose's, unless the wider search beats it
+        # The first pose's flip margin, if it was judged, unless the wider search beats it.
+        flips = evidence["flip_margin"] if evidence else None
         if explains_more(wider, result):
             result, loose, flips = wider, loose_scores(query, codebook, wider, settings), None
         laps("refine_hypotheses")
         evidence, confidence = judged(found, result, loose, searches, flips)
         laps("confidence")
+    assert evidence is not None  # judged once or twice above
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model

@@ -187,15 +187,16 @@ def flip_margin(
 ) -> float:
     """How much better pose ``(R, t)`` (model frame → camera, metres), with
     its ``scores`` on the hypotheses' observed points, explains the view
-    than itself turned half about each of the model's principal axes and
-    moved onto the view: the mistakes a search makes on a near-symmetric
-    view (a banana end for end, a box whose telling details are hidden).
+    than itself turned by each of the codebook's doubtful turns (half turns
+    about the model's principal axes, its near turns) and moved onto the
+    view: the mistakes a search makes on a near-symmetric view (a banana
+    end for end, a box whose telling details are hidden).
     Inlier fraction minus free-space violation, the pose's minus the best
     turned one's that is a different pose (symmetries aside); 1 when none
     is. Near 0 or below when the view cannot tell the object from its flip.
     One call to the Rust core (``rust/src/flips.rs``)."""
     d = codebook.model.diameter
-    centroid, axes = codebook.model.principal_axes
+    turn_rotations, turn_translations = codebook.doubtful_turns
     # Each turned pose is moved (not turned) so the query's keypoints land on
     # the model, as the candidates are: ~0.05 ms against ~0.6 ms for 5 ICP
     # iterations, for part of their gain (tuning set, AUROC of this margin
@@ -207,9 +208,9 @@ def flip_margin(
         np.ascontiguousarray(R, dtype=np.float64),
         np.ascontiguousarray(t, dtype=np.float64),
         float(scores.inlier_fraction[0] - scores.free_space_violation[0]),
-        centroid,
-        axes,
-        settings.align_iterations,
+        turn_rotations,
+        turn_translations,
+        FLIP_ALIGN_ITERATIONS,
         settings.candidate_inlier_distance * d,
         settings.hypothesis_inlier_distance * d,
         settings.free_space_tolerance * d,
@@ -354,6 +355,9 @@ def refine_hypotheses(
 RIVAL_DISTANCE = 0.1
 #: Model points (the first, spread ones) that measure distances between poses.
 RIVAL_POINTS = 64
+#: Keypoint alignment iterations of each turned pose of the flip margin
+#: (the candidates take ``settings.align_iterations``).
+FLIP_ALIGN_ITERATIONS = 1
 
 
 def pose_distances(codebook: Codebook, rotations: np.ndarray, translations: np.ndarray, ref: int) -> np.ndarray:

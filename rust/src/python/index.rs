@@ -216,8 +216,8 @@ impl PyModelIndex {
     /// The flip margin of the pose (`rotation` (3, 3), `translation` (3,),
     /// model → camera) whose inlier fraction minus free-space violation on
     /// the `observed` points is `own_net`: see the core's `flips` module.
-    /// `keypoints`, `observed` and `free_space` are the query's; `centroid` (3,) and `axes` (3, 3), one unit axis per
-    /// column, the model points' centroid and principal axes (model frame).
+    /// `keypoints`, `observed` and `free_space` are the query's; `turn_rotations`
+    /// (K, 3, 3) and `turn_translations` (K, 3) the model's turns tried (model frame).
     #[allow(clippy::too_many_arguments)]
     fn flip_margin<'py>(
         &self,
@@ -228,8 +228,8 @@ impl PyModelIndex {
         rotation: PyReadonlyArray2<'py, f64>,
         translation: PyReadonlyArray1<'py, f64>,
         own_net: f64,
-        centroid: PyReadonlyArray1<'py, f64>,
-        axes: PyReadonlyArray2<'py, f64>,
+        turn_rotations: PyReadonlyArray3<'py, f64>,
+        turn_translations: PyReadonlyArray2<'py, f64>,
         align_iterations: usize,
         align_distance: f64,
         inlier_distance: f64,
@@ -264,9 +264,7 @@ impl PyModelIndex {
                 rotation: matrix(&rotation, "rotation")?,
                 translation: vector(&translation, "translation")?,
             };
-            let centroid = vector(&centroid, "centroid")?;
-            let axes = matrix(&axes, "axes")?;
-            let axes = [0, 1, 2].map(|j| axes.column(j).into_owned());
+            let turns = poses_from(&turn_rotations, &turn_translations)?;
             let settings = FlipSettings {
                 align_iterations,
                 align_distance,
@@ -279,19 +277,8 @@ impl PyModelIndex {
                 rival_points,
                 symmetric,
             };
-            Ok(py.detach(|| {
-                flip_margin(
-                    &self.inner,
-                    k,
-                    o,
-                    grid,
-                    &pose,
-                    own_net,
-                    &centroid,
-                    &axes,
-                    &settings,
-                )
-            }))
+            Ok(py
+                .detach(|| flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings)))
         })
     }
 
