@@ -9,10 +9,13 @@ compositions of primitives (``shapes.procedural_mesh``, symmetric ones
 included), each scaled to a diameter drawn in 6–30 cm. Each is rendered at
 every stress level (:data:`edgepose.eval.STRESS_LEVELS`: clean, occluded,
 spilled and eroded masks, far and noisy), seeds from 555000 (disjoint from
-the benchmark's and the tuning's). ``estimate`` runs with default settings
-on each view; its evidence (:data:`edgepose.confidence.FEATURES`) and
-whether the pose is correct (ADD(-S) < 0.1 d, ADD-S when a symmetry is
-detected) are the data. A logistic regression (L2, Newton) is fitted on the
+the benchmark's and the tuning's), and once more as a mislabelled
+detection: two clean views of another shape of about its size, estimated
+with its codebook (no pose of them is correct; reported apart, as
+``other_object``). ``estimate`` runs with default settings on each view;
+its evidence (:data:`edgepose.confidence.FEATURES`) and whether the pose
+is correct (ADD(-S) < 0.1 d, ADD-S when a symmetry is detected) are the
+data. A logistic regression (L2, Newton) is fitted on the
 standardised, transformed evidence. Reported: AUROC, expected calibration
 error and the rates at the 0.5 threshold, by 4-fold cross-validation grouped
 by object (no object is in its own fold's fit).
@@ -34,6 +37,8 @@ from export.shapes import DIAMETER_RANGE, procedural_mesh, shared_mesh_paths
 
 FEATURE_NAMES = tuple(FEATURES)
 SEED_BASE = 555_000
+#: The level of the mislabelled views: another shape's cloud with the object's codebook.
+OTHER_OBJECT = "other_object"
 CACHE = Path(__file__).resolve().parent / ".cache"
 #: L2 penalty of the logistic regression (on standardised features).
 L2 = 1e-2
@@ -50,7 +55,7 @@ def training_objects(procedural: int, blob_every: int) -> list[tuple[str, object
     return objects
 
 
-def collect_object(job: tuple[int, str, object, int, list[str]]) -> dict[str, list]:
+def collect_object(job: tuple[int, str, object, int, list[str], int]) -> dict[str, list]:
     """Evidence and correctness of ``estimate`` on one object at each stress level."""
     import edgepose
     from edgepose.encoder import default_encoder
@@ -58,8 +63,8 @@ def collect_object(job: tuple[int, str, object, int, list[str]]) -> dict[str, li
     from edgepose.eval.benchmark import load_object
     from edgepose.model import read_mesh
 
-    k, name, source, views, levels = job
-    rows: dict[str, list] = {"object": [], "level": [], "correct": [], "evidence": [], "error": []}
+    k, name, source, views, levels, other_views = job
+    rows: dict[str, list] = {"object": [], "level": [], "correct": [], "evidence": [], "error": [], "error_s": []}
     try:
         mesh = read_mesh(source, scale=None) if isinstance(source, (str, Path)) else source
         mesh = mesh.copy()
@@ -71,8 +76,8 @@ def collect_object(job: tuple[int, str, object, int, list[str]]) -> dict[str, li
         print(f"  skip {name}: {type(e).__name__}: {e}", flush=True)
         return rows
     symmetric = codebook.symmetry.symmetric
+    seeds = [SEED_BASE + k * 1000 + i for i in range(views)]
     for level in levels:
-        seeds = [SEED_BASE + k * 1000 + i for i in range(views)]
         obj = load_object(mesh, seeds, name=name, symmetric=symmetric, stress=level)
         for cloud, T_gt in zip(obj.clouds, obj.poses):
             try:
@@ -84,8 +89,30 @@ def collect_object(job: tuple[int, str, object, int, list[str]]) -> dict[str, li
             rows["level"].append(level)
             rows["correct"].append(e.correct_add_or_s)
             rows["error"].append(e.add_or_s / obj.diameter)
+            rows["error_s"].append(e.add_s / obj.diameter)
             rows["evidence"].append([pose.evidence[f] for f in FEATURE_NAMES])
-    print(f"  {name}: {len(rows['correct'])} views, {np.mean(rows['correct']):.0%} correct", flush=True)
+    # A mislabelled detection: another shape of about this size seen through
+    # this object's codebook. No pose of it is correct.
+    rng = np.random.default_rng(SEED_BASE + 500 + k)
+    other = procedural_mesh(rng)
+    other.apply_translation(-other.bounding_box.centroid)
+    other.apply_scale(target * rng.uniform(0.8, 1.25) / np.linalg.norm(other.extents))
+    for cloud in load_object(other, seeds[:other_views], name=OTHER_OBJECT, symmetric=False).clouds:
+        try:
+            pose = edgepose.estimate(cloud, codebook)
+        except edgepose.EdgePoseError:
+            continue
+        for key, value in (("object", name), ("level", OTHER_OBJECT), ("correct", False)):
+            rows[key].append(value)
+        rows["error"].append(np.nan)
+        rows["error_s"].append(np.nan)
+        rows["evidence"].append([pose.evidence[f] for f in FEATURE_NAMES])
+    ours = [c for c, level in zip(rows["correct"], rows["level"]) if level != OTHER_OBJECT]
+    print(
+        f"  {name}: {len(ours)} views, {np.mean(ours):.0%} correct"
+        f" (+ {len(rows['correct']) - len(ours)} of another shape)",
+        flush=True,
+    )
     return rows
 
 
@@ -140,6 +167,12 @@ def report(name: str, p: np.ndarray, y: np.ndarray) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--views", type=int, default=8, help="views per object and stress level")
+    parser.add_argument(
+        "--other-views",
+        type=int,
+        default=2,
+        help="views per object of another shape (a mislabelled detection: ~2 %% of all)",
+    )
     parser.add_argument("--procedural", type=int, default=16, help="procedural objects")
     parser.add_argument("--blob-every", type=int, default=40, help="every n-th blob")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
@@ -160,7 +193,9 @@ def main() -> None:
             parser.error(f"{args.data} holds features {list(data['features'])}, not {list(FEATURE_NAMES)}")
     else:
         meshes = training_objects(args.procedural, args.blob_every)
-        jobs = [(k, name, src, args.views, list(STRESS_LEVELS)) for k, (name, src) in enumerate(meshes)]
+        jobs = [
+            (k, name, src, args.views, list(STRESS_LEVELS), args.other_views) for k, (name, src) in enumerate(meshes)
+        ]
         print(f"collecting: {len(jobs)} objects × {len(STRESS_LEVELS)} levels × {args.views} views", flush=True)
         with ProcessPoolExecutor(args.workers) as pool:
             parts = list(pool.map(collect_object, jobs))
@@ -169,6 +204,7 @@ def main() -> None:
         correct = np.array([c for p in parts for c in p["correct"]], dtype=bool)
         evidence = np.array([e for p in parts for e in p["evidence"]], dtype=np.float64)
         error = np.array([e for p in parts for e in p["error"]], dtype=np.float64)
+        error_s = np.array([e for p in parts for e in p["error_s"]], dtype=np.float64)
         args.save_data.parent.mkdir(parents=True, exist_ok=True)
         np.savez(
             args.save_data,
@@ -177,6 +213,7 @@ def main() -> None:
             correct=correct,
             evidence=evidence,
             error=error,
+            error_s=error_s,
             features=FEATURE_NAMES,
         )
         print(f"evidence saved to {args.save_data} ({time.perf_counter() - t0:.0f} s)")
@@ -190,14 +227,23 @@ def main() -> None:
         model = fit_model(evidence[folds != f], correct[folds != f])
         held_out[folds == f] = [model.probability(dict(zip(FEATURE_NAMES, row))) for row in evidence[folds == f]]
     print(f"\n4-fold cross-validation by object ({len(names)} objects):")
-    stressed = levels != "clean"
+    # The benchmark's levels: the mislabelled views (all wrong) are reported apart.
+    clean, other = levels == "clean", levels == OTHER_OBJECT
+    stressed, benchmark = ~clean & ~other, ~other
     summary = {
-        "all": report("all", held_out, correct),
-        "clean": report("clean", held_out[~stressed], correct[~stressed]),
+        "all": report("all", held_out[benchmark], correct[benchmark]),
+        "clean": report("clean", held_out[clean], correct[clean]),
         "stressed": report("stressed", held_out[stressed], correct[stressed]),
     }
     for level in dict.fromkeys(levels):
-        report(str(level), held_out[levels == level], correct[levels == level])
+        if level != OTHER_OBJECT:
+            report(str(level), held_out[levels == level], correct[levels == level])
+    if other.any():
+        summary[OTHER_OBJECT] = {"views": int(other.sum()), "trusted": float((held_out[other] >= 0.5).mean())}
+        print(
+            f"{OTHER_OBJECT:<10} {other.sum():>5} views (another shape, all wrong): trusted at 0.5 "
+            f"{summary[OTHER_OBJECT]['trusted']:.1%}"
+        )
 
     model = fit_model(evidence, correct)
     print("\nfitted on all:", json.dumps(model.to_manifest()["weights"]))
