@@ -257,11 +257,11 @@ def pose_from_query(
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
     loose = loose_scores(query, codebook, result, settings)
-    laps("refine_hypotheses")
     searches = 1
     may_retry = retry_k > k or pairs > 0
     # A doubtful pose is searched again whatever its confidence: that is judged after.
     retry = may_retry and doubtful(query, codebook, result, settings, loose)
+    laps("refine_hypotheses")
     evidence: dict[str, float] | None = None
     if not retry:
         evidence, confidence = judged(found, result, loose, searches)
