@@ -116,3 +116,27 @@ def test_tiny_training_exports_onnx_that_matches_torch(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(codes, axis=1), 1.0, atol=1e-5)
     # Resuming from the checkpoint continues rather than restarting.
     assert train.main(["--tiny", "--resume", "--out", str(out), "--cache", str(tmp_path / "cache")]) == 0
+
+
+def test_confidence_data_include_a_mislabelled_detection_and_the_fit_ranks_it_low():
+    """``export.confidence`` on one object: its own view, judged by ADD(-S),
+    and a view of another shape through its codebook, always wrong; the
+    model fitted on evidence rows puts the wrong ones below the right ones."""
+    import trimesh
+    from edgepose.confidence import FEATURES
+
+    from export import confidence
+
+    rows = confidence.collect_object((0, "block", trimesh.creation.box([0.05, 0.08, 0.12]), 2, ["clean"], 2))
+    assert rows["level"] == ["clean", "clean", confidence.OTHER_OBJECT, confidence.OTHER_OBJECT]
+    assert rows["correct"][2:] == [False, False] and all(np.isnan(rows["error"][2:]))
+    assert all(rows["correct"][:2]) and max(rows["error"][:2]) < 0.1 and max(rows["error_s"][:2]) < 0.1
+    assert all(len(e) == len(FEATURES) for e in rows["evidence"])
+    # A fit on these rows (repeated, lightly jittered) ranks the right ones first.
+    rng = np.random.default_rng(0)
+    evidence = np.repeat(np.array(rows["evidence"]), 20, axis=0)
+    evidence *= 1 + 0.01 * rng.standard_normal(evidence.shape)
+    correct = np.repeat(np.array(rows["correct"]), 20)
+    model = confidence.fit_model(evidence, correct)
+    p = [model.probability(dict(zip(confidence.FEATURE_NAMES, row))) for row in rows["evidence"]]
+    assert min(p[:2]) > 0.5 > max(p[2:])
