@@ -258,7 +258,8 @@ def main() -> None:
                 "objects": int(len(names)),
                 "views": int(len(correct)),
                 "stress_levels": list(dict.fromkeys(str(v) for v in levels)),
-                "data": "shared/data/train_shapes CAD parts, every 40th blob and procedural shapes; never YCB",
+                "data": "shared/data/train_shapes CAD parts, every 40th blob and procedural shapes, plus "
+                f"{int(other.sum())} views of another shape through an object's codebook ({OTHER_OBJECT}); never YCB",
                 "correct": "ADD(-S) < 0.1 d, ADD-S for objects with a detected symmetry",
                 "cross_validation": summary,
             },
