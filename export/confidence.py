@@ -77,36 +77,35 @@ def collect_object(job: tuple[int, str, object, int, list[str], int]) -> dict[st
         return rows
     symmetric = codebook.symmetry.symmetric
     seeds = [SEED_BASE + k * 1000 + i for i in range(views)]
+
+    def estimated(clouds: list[np.ndarray]):
+        """(index, pose) of each cloud ``estimate`` gives a pose for (no
+        pose, no confidence to judge)."""
+        for i, cloud in enumerate(clouds):
+            try:
+                yield i, edgepose.estimate(cloud, codebook)
+            except edgepose.EdgePoseError:
+                continue
+
+    def add(level: str, pose, correct: bool, error: float, error_s: float) -> None:
+        evidence = [pose.evidence[f] for f in FEATURE_NAMES]
+        row = dict(object=name, level=level, correct=correct, evidence=evidence, error=error, error_s=error_s)
+        for key, value in row.items():
+            rows[key].append(value)
+
     for level in levels:
         obj = load_object(mesh, seeds, name=name, symmetric=symmetric, stress=level)
-        for cloud, T_gt in zip(obj.clouds, obj.poses):
-            try:
-                pose = edgepose.estimate(cloud, codebook)
-            except edgepose.EdgePoseError:
-                continue  # no pose, no confidence to judge
-            e = pose_errors(obj.points, pose.matrix, T_gt, obj.diameter, symmetric)
-            rows["object"].append(name)
-            rows["level"].append(level)
-            rows["correct"].append(e.correct_add_or_s)
-            rows["error"].append(e.add_or_s / obj.diameter)
-            rows["error_s"].append(e.add_s / obj.diameter)
-            rows["evidence"].append([pose.evidence[f] for f in FEATURE_NAMES])
+        for i, pose in estimated(obj.clouds):
+            e = pose_errors(obj.points, pose.matrix, obj.poses[i], obj.diameter, symmetric)
+            add(level, pose, e.correct_add_or_s, e.add_or_s / obj.diameter, e.add_s / obj.diameter)
     # A mislabelled detection: another shape of about this size seen through
     # this object's codebook. No pose of it is correct.
     rng = np.random.default_rng(SEED_BASE + 500 + k)
     other = procedural_mesh(rng)
     other.apply_translation(-other.bounding_box.centroid)
     other.apply_scale(target * rng.uniform(0.8, 1.25) / np.linalg.norm(other.extents))
-    for cloud in load_object(other, seeds[:other_views], name=OTHER_OBJECT, symmetric=False).clouds:
-        try:
-            pose = edgepose.estimate(cloud, codebook)
-        except edgepose.EdgePoseError:
-            continue
-        for key, value in (("object", name), ("level", OTHER_OBJECT), ("correct", False)):
-            rows[key].append(value)
-        rows["error"].append(np.nan)
-        rows["error_s"].append(np.nan)
-        rows["evidence"].append([pose.evidence[f] for f in FEATURE_NAMES])
+    for _, pose in estimated(load_object(other, seeds[:other_views], name=OTHER_OBJECT, symmetric=False).clouds):
+        add(OTHER_OBJECT, pose, False, np.nan, np.nan)
     ours = [c for c, level in zip(rows["correct"], rows["level"]) if level != OTHER_OBJECT]
     print(
         f"  {name}: {len(ours)} views, {np.mean(ours):.0%} correct"

@@ -198,12 +198,10 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     if len(continuous) > 1:  # two continuous axes: a sphere, every axis
         continuous, group = [(np.eye(3)[i], centroid) for i in range(3)], []
     # Model frame → object frame: p_obj = p_model + centre.
-    shift, unshift = _transform_from(np.eye(3), model.centre), _transform_from(np.eye(3), -model.centre)
-    discrete = np.stack([shift @ T @ unshift for T in group]) if group else np.zeros((0, 4, 4))
+    discrete = _shifted(group, model.centre)
     rows = [np.concatenate([a * np.sign(a[np.argmax(np.abs(a))]), p + model.centre]) for a, p in continuous]
     near = _near_turns(index, model, screen, R, t, group, [a for a, _ in continuous])
-    near_obj = np.stack([shift @ T @ unshift for T in near]) if near else np.zeros((0, 4, 4))
-    return Symmetry(discrete, np.array(rows).reshape(-1, 6), near_obj)
+    return Symmetry(discrete, np.array(rows).reshape(-1, 6), _shifted(near, model.centre))
 
 
 def _near_turns(
@@ -256,9 +254,7 @@ def doubtful_turns(model: StandardModel, symmetry: Symmetry) -> tuple[np.ndarray
     turns (:attr:`Symmetry.near`) and the half turns about the model points'
     principal axes through their centroid (a banana end for end) that are
     not already among them (a box's near turns are its half turns)."""
-    # Object frame -> model frame: p_model = p_obj - centre.
-    shift, unshift = _transform_from(np.eye(3), model.centre), _transform_from(np.eye(3), -model.centre)
-    turns = [unshift @ T @ shift for T in symmetry.near]
+    turns = list(_shifted(symmetry.near, -model.centre))  # object frame -> model frame
     centroid, axes = model.principal_axes
     for axis in axes.T:
         T = _turn_about(axis, centroid, np.pi)
@@ -266,6 +262,14 @@ def doubtful_turns(model: StandardModel, symmetry: Symmetry) -> tuple[np.ndarray
             turns.append(T)
     stacked = np.stack(turns)
     return np.ascontiguousarray(stacked[:, :3, :3]), np.ascontiguousarray(stacked[:, :3, 3])
+
+
+def _shifted(turns: list[np.ndarray] | np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(K, 4, 4) the 4 × 4 ``turns`` of points ``p`` as turns of ``p + offset``
+    (metres): model frame -> object frame with the model centre as ``offset``,
+    back with its negative."""
+    shift, unshift = _transform_from(np.eye(3), offset), _transform_from(np.eye(3), -offset)
+    return np.stack([shift @ T @ unshift for T in turns]) if len(turns) else np.zeros((0, 4, 4))
 
 
 def _candidate_axes(centred: np.ndarray, normals: np.ndarray) -> list[np.ndarray]:

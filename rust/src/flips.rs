@@ -7,7 +7,7 @@
 use nalgebra::Vector3;
 
 use crate::index::{ModelIndex, Pose};
-use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
+use crate::scoring::{align_translations, score_poses, DepthGrid, PoseScore, ScoreSettings};
 use crate::Point3;
 
 /// ADD of each of `poses` from `reference` on the model's first `points`
@@ -116,7 +116,7 @@ pub fn flip_margin(
     if rivals.is_empty() {
         return 1.0;
     }
-    let net = |s: &crate::scoring::PoseScore| s.inlier_fraction - s.free_space_violation;
+    let net = |s: &PoseScore| s.inlier_fraction - s.free_space_violation;
     // The rival to beat is picked on a quarter of the points and model points
     // (each look-up is a likely cache miss), then scored as the pose was.
     let best = if rivals.len() > 1 {
