@@ -142,7 +142,13 @@ class PrepareOnce:
             self.method.prepare(mesh)
             self.mesh = mesh
 
-    def estimate(self, cloud: np.ndarray) -> np.ndarray:
+    @property
+    def uses_frame(self) -> bool:
+        return bool(getattr(self.method, "uses_frame", False))
+
+    def estimate(self, cloud: np.ndarray, frame: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        if frame is not None and self.uses_frame:
+            return self.method.estimate(cloud, frame=frame)  # type: ignore[call-arg]
         return self.method.estimate(cloud)
 
     @property
@@ -211,6 +217,7 @@ def run_all(
                         poses=obj.poses[:n],
                         visible=obj.visible[:n],
                         spill=obj.spill[:n],
+                        frames=obj.frames[:n],
                     )
                 try:
                     t0 = time.perf_counter()
@@ -230,7 +237,7 @@ def run_all(
                 )
                 runs[level][name].views += run.views
                 runs[level][name].prepare_s[src.name] = method.prepare_s[src.name]
-            objects[level].append(dataclasses.replace(obj, clouds=[]))
+            objects[level].append(dataclasses.replace(obj, clouds=[], frames=[]))
     kept = {lv: [r for m, r in by_method.items() if m not in failed and r.views] for lv, by_method in runs.items()}
     return kept, objects
 
@@ -616,6 +623,17 @@ def confidence_section(runs: dict[str, list[MethodRun]], extra_files: dict[str, 
     groups = confidence_groups(runs)
     if not groups or "reliability" not in extra_files:
         return ""
+    framed = confidence_groups(runs, "edgepose-frame")
+    with_frame = (
+        f"""
+
+Given each view's depth frame too (`edgepose-frame`: `estimate(cloud, codebook, depth=, K=)`), with
+the model of the manifest's `confidence.with_scene` where it has one:
+
+{report.confidence_table(framed)}"""
+        if framed
+        else ""
+    )
     return f"""## Confidence (edgepose)
 
 `Pose.confidence` is the probability that the pose is correct (ADD(-S) < 0.1 × diameter), from a
@@ -623,7 +641,7 @@ logistic model over the scoring terms of `estimate` fitted on training shapes (`
 export.confidence`; never these objects). Default rule: trust a pose at confidence ≥ {TRUST_THRESHOLD}.
 AUROC: chance that a correct pose scores above a wrong one; ECE: expected calibration error (10 bins).
 
-{report.confidence_table(groups)}
+{report.confidence_table(groups)}{with_frame}
 
 ![reliability diagram]({extra_files["reliability"].name})"""
 

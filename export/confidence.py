@@ -3,6 +3,7 @@
     .venv/bin/python -m export.confidence              # collect, cross-validate, print
     .venv/bin/python -m export.confidence --write      # ... and write it into models/manifest.json
     .venv/bin/python -m export.confidence --data F.npz # refit on evidence collected before
+    .venv/bin/python -m export.confidence --frame --write  # the model for poses given the depth frame too
 
 Objects: the shared training CAD parts, every 40th blob and procedural
 compositions of primitives (``shapes.procedural_mesh``, symmetric ones
@@ -15,7 +16,11 @@ with its codebook (no pose of them is correct; reported apart, as
 ``other_object``). ``estimate`` runs with default settings on each view;
 its evidence (:data:`edgepose.confidence.FEATURES`) and whether the pose
 is correct (ADD(-S) < 0.1 d, ADD-S when a symmetry is detected) are the
-data. A logistic regression (L2, Newton) is fitted on the
+data. With ``--frame`` each view's whole depth frame is given too
+(``estimate(cloud, codebook, depth=, K=)``): the evidence then holds the
+scene terms (:data:`edgepose.confidence.SCENE_FEATURES`), and the model is
+written as the manifest's ``confidence.with_scene``, the one
+``Pose.confidence`` uses for such poses. A logistic regression (L2, Newton) is fitted on the
 standardised, transformed evidence. Reported: AUROC, expected calibration
 error and the rates at the 0.5 threshold, by 4-fold cross-validation grouped
 by object (no object is in its own fold's fit).
@@ -31,11 +36,13 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from edgepose.confidence import FEATURES
+from edgepose.confidence import FEATURES, SCENE_FEATURES
 
 from export.shapes import DIAMETER_RANGE, procedural_mesh, shared_mesh_paths
 
-FEATURE_NAMES = tuple(FEATURES)
+#: The evidence the model for clouds alone reads, and the one for poses given the depth frame too.
+CLOUD_FEATURES = tuple(f for f in FEATURES if f not in SCENE_FEATURES)
+FRAME_FEATURES = tuple(FEATURES)
 SEED_BASE = 555_000
 #: The level of the mislabelled views: another shape's cloud with the object's codebook.
 OTHER_OBJECT = "other_object"
@@ -55,15 +62,17 @@ def training_objects(procedural: int, blob_every: int) -> list[tuple[str, object
     return objects
 
 
-def collect_object(job: tuple[int, str, object, int, list[str], int]) -> dict[str, list]:
-    """Evidence and correctness of ``estimate`` on one object at each stress level."""
+def collect_object(job: tuple[int, str, object, int, list[str], int, bool]) -> dict[str, list]:
+    """Evidence and correctness of ``estimate`` on one object at each stress
+    level (given each view's depth frame too when the job's last item is true)."""
     import edgepose
     from edgepose.encoder import default_encoder
     from edgepose.eval import pose_errors
     from edgepose.eval.benchmark import load_object
     from edgepose.model import read_mesh
 
-    k, name, source, views, levels, other_views = job
+    k, name, source, views, levels, other_views, with_frame = job
+    feature_names = FRAME_FEATURES if with_frame else CLOUD_FEATURES
     rows: dict[str, list] = {"object": [], "level": [], "correct": [], "evidence": [], "error": [], "error_s": []}
     try:
         mesh = read_mesh(source, scale=None) if isinstance(source, (str, Path)) else source
@@ -78,24 +87,25 @@ def collect_object(job: tuple[int, str, object, int, list[str], int]) -> dict[st
     symmetric = codebook.symmetry.symmetric
     seeds = [SEED_BASE + k * 1000 + i for i in range(views)]
 
-    def estimated(clouds: list[np.ndarray]):
-        """(index, pose) of each cloud ``estimate`` gives a pose for (no
-        pose, no confidence to judge)."""
-        for i, cloud in enumerate(clouds):
+    def estimated(obj):
+        """(index, pose) of each view of ``obj`` that ``estimate`` gives a
+        pose for (no pose, no confidence to judge)."""
+        for i, (cloud, (depth, K)) in enumerate(zip(obj.clouds, obj.frames)):
+            frame = dict(depth=depth, K=K, depth_scale=1.0) if with_frame else {}
             try:
-                yield i, edgepose.estimate(cloud, codebook)
+                yield i, edgepose.estimate(cloud, codebook, **frame)
             except edgepose.EdgePoseError:
                 continue
 
     def add(level: str, pose, correct: bool, error: float, error_s: float) -> None:
-        evidence = [pose.evidence[f] for f in FEATURE_NAMES]
+        evidence = [pose.evidence[f] for f in feature_names]
         row = dict(object=name, level=level, correct=correct, evidence=evidence, error=error, error_s=error_s)
         for key, value in row.items():
             rows[key].append(value)
 
     for level in levels:
         obj = load_object(mesh, seeds, name=name, symmetric=symmetric, stress=level)
-        for i, pose in estimated(obj.clouds):
+        for i, pose in estimated(obj):
             e = pose_errors(obj.points, pose.matrix, obj.poses[i], obj.diameter, symmetric)
             add(level, pose, e.correct_add_or_s, e.add_or_s / obj.diameter, e.add_s / obj.diameter)
     # A mislabelled detection: another shape of about this size seen through
@@ -104,7 +114,7 @@ def collect_object(job: tuple[int, str, object, int, list[str], int]) -> dict[st
     other = procedural_mesh(rng)
     other.apply_translation(-other.bounding_box.centroid)
     other.apply_scale(target * rng.uniform(0.8, 1.25) / np.linalg.norm(other.extents))
-    for _, pose in estimated(load_object(other, seeds[:other_views], name=OTHER_OBJECT, symmetric=False).clouds):
+    for _, pose in estimated(load_object(other, seeds[:other_views], name=OTHER_OBJECT, symmetric=False)):
         add(OTHER_OBJECT, pose, False, np.nan, np.nan)
     ours = [c for c, level in zip(rows["correct"], rows["level"]) if level != OTHER_OBJECT]
     print(
@@ -132,15 +142,15 @@ def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = L2, iterations: int =
     return w[:f], float(w[f])
 
 
-def fit_model(evidence: np.ndarray, correct: np.ndarray):
-    """A :class:`edgepose.confidence.ConfidenceModel` fitted on rows of evidence."""
+def fit_model(evidence: np.ndarray, correct: np.ndarray, names: tuple[str, ...] = CLOUD_FEATURES):
+    """A :class:`edgepose.confidence.ConfidenceModel` fitted on rows of evidence (columns: ``names``)."""
     from edgepose.confidence import ConfidenceModel, feature_vector
 
-    X = np.stack([feature_vector(dict(zip(FEATURE_NAMES, row)), FEATURE_NAMES) for row in evidence])
+    X = np.stack([feature_vector(dict(zip(names, row)), names) for row in evidence])
     mean, scale = X.mean(axis=0), X.std(axis=0)
     scale[scale == 0] = 1.0
     weights, bias = fit_logistic((X - mean) / scale, correct.astype(float))
-    return ConfidenceModel(FEATURE_NAMES, mean, scale, weights, bias)
+    return ConfidenceModel(names, mean, scale, weights, bias)
 
 
 def report(name: str, p: np.ndarray, y: np.ndarray) -> dict:
@@ -179,7 +189,13 @@ def main() -> None:
     parser.add_argument("--save-data", type=Path, default=CACHE / "confidence_data.npz")
     parser.add_argument("--models", type=Path, default=None, help="models directory (default: the shipped one)")
     parser.add_argument("--write", action="store_true", help="write the fitted model into the manifest")
+    parser.add_argument(
+        "--frame", action="store_true", help="give estimate each view's depth frame too: the with_scene model"
+    )
     args = parser.parse_args()
+    names = FRAME_FEATURES if args.frame else CLOUD_FEATURES
+    if args.save_data == parser.get_default("save_data") and args.frame:
+        args.save_data = CACHE / "confidence_data_frame.npz"
 
     from edgepose.encoder import MODELS_DIR
     from edgepose.eval import STRESS_LEVELS
@@ -188,12 +204,13 @@ def main() -> None:
     if args.data:
         data = np.load(args.data)
         objects, levels, correct, evidence = data["object"], data["level"], data["correct"], data["evidence"]
-        if list(data["features"]) != list(FEATURE_NAMES):
-            parser.error(f"{args.data} holds features {list(data['features'])}, not {list(FEATURE_NAMES)}")
+        if list(data["features"]) != list(names):
+            parser.error(f"{args.data} holds features {list(data['features'])}, not {list(names)}")
     else:
         meshes = training_objects(args.procedural, args.blob_every)
         jobs = [
-            (k, name, src, args.views, list(STRESS_LEVELS), args.other_views) for k, (name, src) in enumerate(meshes)
+            (k, name, src, args.views, list(STRESS_LEVELS), args.other_views, args.frame)
+            for k, (name, src) in enumerate(meshes)
         ]
         print(f"collecting: {len(jobs)} objects × {len(STRESS_LEVELS)} levels × {args.views} views", flush=True)
         with ProcessPoolExecutor(args.workers) as pool:
@@ -213,7 +230,7 @@ def main() -> None:
             evidence=evidence,
             error=error,
             error_s=error_s,
-            features=FEATURE_NAMES,
+            features=names,
         )
         print(f"evidence saved to {args.save_data} ({time.perf_counter() - t0:.0f} s)")
 
@@ -223,8 +240,8 @@ def main() -> None:
     folds = np.array([fold_of[o] for o in objects])
     held_out = np.empty(len(correct))
     for f in range(4):
-        model = fit_model(evidence[folds != f], correct[folds != f])
-        held_out[folds == f] = [model.probability(dict(zip(FEATURE_NAMES, row))) for row in evidence[folds == f]]
+        model = fit_model(evidence[folds != f], correct[folds != f], names)
+        held_out[folds == f] = [model.probability(dict(zip(names, row))) for row in evidence[folds == f]]
     print(f"\n4-fold cross-validation by object ({len(names)} objects):")
     # The benchmark's levels: the mislabelled views (all wrong) are reported apart.
     clean, other = levels == "clean", levels == OTHER_OBJECT
@@ -244,16 +261,16 @@ def main() -> None:
             f"{summary[OTHER_OBJECT]['trusted']:.1%}"
         )
 
-    model = fit_model(evidence, correct)
+    model = fit_model(evidence, correct, names)
     print("\nfitted on all:", json.dumps(model.to_manifest()["weights"]))
     if args.write:
         directory = args.models or MODELS_DIR
         manifest_path = directory / "manifest.json"
         manifest = json.loads(manifest_path.read_text())
-        manifest["confidence"] = {
+        entry = {
             **model.to_manifest(),
             "fitted_on": {
-                "command": "python -m export.confidence --write",
+                "command": f"python -m export.confidence{' --frame' if args.frame else ''} --write",
                 "objects": int(len(names)),
                 "views": int(len(correct)),
                 "stress_levels": list(dict.fromkeys(str(v) for v in levels)),
@@ -263,6 +280,13 @@ def main() -> None:
                 "cross_validation": summary,
             },
         }
+        if args.frame:
+            if "confidence" not in manifest:
+                parser.error("fit the model for clouds alone first (without --frame): the frame's model goes beside it")
+            manifest["confidence"]["with_scene"] = entry
+        else:
+            scene = manifest.get("confidence", {}).get("with_scene")
+            manifest["confidence"] = entry if scene is None else {**entry, "with_scene": scene}
         manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
         print(f"written to {manifest_path}")
 

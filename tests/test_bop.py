@@ -202,7 +202,9 @@ def test_estimate_many_matches_estimate_and_reports_a_bad_mask(dataset, codebook
     assert set(frame.timings) == {"queries", "encode", "search", "total"} and frame.seconds > 0
     for (mask, book), pose, error in zip(objects, frame.poses, frame.errors):
         assert error is None and pose is not None
-        alone = edgepose.estimate(edgepose.cloud_from_depth(depth, image.K, mask, 1.0), book)
+        cloud = edgepose.cloud_from_depth(depth, image.K, mask, 1.0)
+        alone = edgepose.estimate(cloud, book, depth=depth, K=image.K, depth_scale=1.0)
+        assert pose.evidence["scene_violation"] == pytest.approx(alone.evidence["scene_violation"], abs=0.02)
         assert np.linalg.norm(pose.t - alone.t) < 1e-3
         assert np.abs(pose.R - alone.R).max() < 1e-2
     with pytest.raises(InvalidCloudError, match="mask shape"):

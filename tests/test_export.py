@@ -138,5 +138,5 @@ def test_confidence_data_include_a_mislabelled_detection_and_the_fit_ranks_it_lo
     evidence *= 1 + 0.01 * rng.standard_normal(evidence.shape)
     correct = np.repeat(np.array(rows["correct"]), 20)
     model = confidence.fit_model(evidence, correct)
-    p = [model.probability(dict(zip(confidence.FEATURE_NAMES, row))) for row in rows["evidence"]]
+    p = [model.probability(dict(zip(confidence.CLOUD_FEATURES, row))) for row in rows["evidence"]]
     assert min(p[:2]) > 0.5 > max(p[2:])

@@ -236,3 +236,35 @@ def test_doubt_is_a_pose_that_explains_too_few_points_or_violates_free_space(dri
     assert explains_more(refined(0.97, 0.0), refined(0.99, 0.05))
     assert not explains_more(refined(0.90, 0.0), refined(0.95, 0.01))
     assert explains_more(refined(0.5, 0.2), refined(0.99, 0.0, False))  # refined beats unrefined
+
+
+def test_the_depth_frame_exposes_a_pose_out_of_the_occluders_shadow(drill):
+    """Given the whole depth frame, a pose whose unseen part would stand in
+    front of background the camera saw beside the mask is a contradiction;
+    the true pose, whose unseen part is behind the occluder, is not."""
+    from edgepose.cloud import checked_depth
+    from edgepose.eval.scenes import render_scene
+    from edgepose.stages import score_poses
+
+    mesh, codebook = drill
+    d = codebook.model.diameter
+    view = render_scene(mesh, "visible40", seed=4)
+    frame = (*checked_depth(view.depth, view.K, 1.0), 1.0)
+    seen, blind = prepare_query(view.cloud, codebook, frame=frame), prepare_query(view.cloud, codebook)
+    R = view.T_cam_obj[:3, :3]
+    t = view.T_cam_obj[:3, 3] + R @ codebook.model.centre  # model frame → camera
+    slid = [t + 0.4 * d * np.array(step) for step in ([1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0])]
+    rotations, translations = np.stack([R] * 5), np.stack([t, *slid])
+    scores = score_poses(seen, codebook, seen.points, rotations, translations, 0.02 * d, 0.0)
+    assert scores.scene_violation[0] < 0.05
+    assert scores.scene_violation[1:].max() > 0.2, scores.scene_violation
+    assert (score_poses(blind, codebook, blind.points, rotations, translations, 0.02 * d, 0.0).scene_violation == 0).all()
+
+    pose = edgepose.estimate(view.cloud, codebook, depth=view.depth, K=view.K, depth_scale=1.0)
+    assert errors(pose, view, codebook).correct_add_or_s
+    assert pose.evidence["scene_violation"] < 0.05 and 0.5 <= pose.confidence <= 1.0
+    assert edgepose.estimate(view.cloud, codebook).evidence["scene_violation"] == 0.0
+    with pytest.raises(edgepose.InvalidCloudError, match="depth and K go together"):
+        edgepose.estimate(view.cloud, codebook, depth=view.depth)
+    with pytest.raises(edgepose.InvalidCloudError, match="2-D image"):
+        edgepose.estimate(view.cloud, codebook, depth=view.depth[0], K=view.K)

@@ -119,7 +119,14 @@ class IcpResults:
     def rmse(self) -> npt.NDArray[np.float64]: ...
 
 class DepthGrid:
-    def __init__(self, cloud: npt.NDArray[np.float32], spacing: float) -> None: ...
+    def __init__(
+        self,
+        cloud: npt.NDArray[np.float32],
+        spacing: float,
+        scene_depth: npt.NDArray[np.float32] | None = None,
+        scene_camera: tuple[float, float, float, float] | None = None,
+        scene_radius: int = 2,
+    ) -> None: ...
 
 class ModelIndex:
     def __init__(self, model: StandardModel) -> None: ...
@@ -155,6 +162,7 @@ class ModelIndex:
         free_space_tolerance: float,
         model_stride: int,
     ) -> tuple[
+        npt.NDArray[np.float64],
         npt.NDArray[np.float64],
         npt.NDArray[np.float64],
         npt.NDArray[np.float64],

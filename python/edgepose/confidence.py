@@ -44,7 +44,13 @@ FEATURES: dict[str, str] = {
     "(the best such, if a different pose); 1 when none is",
     "rmse_ratio": "coarse ICP RMSE of the chosen hypothesis over the lowest of the rival hypotheses (more than "
     "0.1 d away) that competed with it for the pick; 0 when none competed",
+    "scene_violation": "share of the model's camera-facing points that land off the observed silhouette in front of "
+    "the frame's depth there (the model would hide background the camera saw), 0-1; only with the depth image",
 }
+
+#: The evidence that needs the frame's depth image (``estimate(..., depth=, K=)``):
+#: the model fitted without it never reads these.
+SCENE_FEATURES = ("scene_violation",)
 
 
 def _value(v: float) -> float:
@@ -92,6 +98,7 @@ TERMS: dict[str, tuple[Callable[[float], float], ...]] = {
     "translation_constraint": (_value, _log_share),
     "flip_margin": (_value, _clipped_margin, _no_rival),
     "rmse_ratio": (_value,),
+    "scene_violation": (_value, _log_share),
 }
 
 
@@ -186,6 +193,7 @@ def evidence_of(
     translation_constraint: float,
     flip_margin: float,
     rmse_ratio: float,
+    scene_violation: float = 0.0,
 ) -> dict[str, float]:
     """The evidence (:data:`FEATURES`) as a dict of floats."""
     return {
@@ -202,4 +210,5 @@ def evidence_of(
         "translation_constraint": float(translation_constraint),
         "flip_margin": float(flip_margin),
         "rmse_ratio": float(rmse_ratio),
+        "scene_violation": float(scene_violation),
     }

@@ -62,6 +62,12 @@ class Encoder:
             self.confidence: ConfidenceModel | None = (
                 ConfidenceModel.from_manifest(manifest["confidence"]) if "confidence" in manifest else None
             )
+            # ... and the one for poses checked against the frame's depth too
+            # (its scene terms); the model above where none was fitted.
+            scene = manifest.get("confidence", {}).get("with_scene")
+            self.scene_confidence: ConfidenceModel | None = (
+                ConfidenceModel.from_manifest(scene) if scene is not None else self.confidence
+            )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise ModelFilesError(f"{models_dir / 'manifest.json'}: malformed ({type(e).__name__}: {e})") from None
         options = ort.SessionOptions()

@@ -1,11 +1,13 @@
 """``estimate_many(depth, K, objects)``: the poses of several objects seen in
 one depth frame, each given by its mask and its codebook.
 
-It does what :func:`edgepose.estimate` does per object, but shares the
+It does what :func:`edgepose.estimate` does per object given the frame
+(``estimate(cloud, codebook, depth=depth, K=K)``: poses are checked against
+the scene around each object too), but shares the
 frame's work: the depth image is checked and converted once, the objects'
 maps are encoded in one ONNX call, and the objects are searched and refined
 in parallel threads (the Rust core and onnxruntime release the GIL). The
-poses equal :func:`edgepose.estimate`'s on each object's masked cloud up to
+poses equal :func:`edgepose.estimate`'s on each object's masked cloud and the frame up to
 the floating-point order of a batched encoding.
 
 Units are metres; camera frames follow OpenCV; poses are ``T_cam_obj``.
@@ -90,7 +92,8 @@ def estimate_many(
     def prepared(i: int) -> tuple[Query | None, Laps, EdgePoseError | None]:
         laps = Laps()
         try:
-            query = prepare_query(back_project(depth, K, masks[i], depth_scale), codebooks[i], settings)
+            cloud = back_project(depth, K, masks[i], depth_scale)
+            query = prepare_query(cloud, codebooks[i], settings, (depth, K, depth_scale))
         except EdgePoseError as e:
             return None, laps, e
         laps("prepare_query")

@@ -18,9 +18,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from edgepose.cloud import DEPTH_SCALE_MM, checked_depth
 from edgepose.codebook import Codebook, CodebookError
 from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
+from edgepose.errors import InvalidCloudError
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
 from edgepose.stages import (
     PoseScores,
@@ -118,6 +120,9 @@ def estimate(
     cloud: object,
     codebook: Codebook,
     *,
+    depth: np.ndarray | None = None,
+    K: object = None,
+    depth_scale: float = DEPTH_SCALE_MM,
     refine: bool = True,
     k: int | None = None,
     encoder: Encoder | None = None,
@@ -130,6 +135,14 @@ def estimate(
     the background is fine: such points are dropped). Deterministic: the same
     input gives the same pose.
 
+    ``depth`` (H, W) and ``K`` (3×3): the whole depth frame the cloud was cut
+    from (``depth / depth_scale`` metres; 1000: uint16 millimetres), when
+    the caller has it. Poses are then also checked against the scene around
+    the object: a pose that would stand in front of background the camera
+    saw beside the object's mask contradicts the view (what an occluder
+    hides does not). It makes poses of partly hidden objects more often
+    right and ``confidence`` sharper; it costs ~0.2 ms.
+
     ``settings`` holds every tuning value; ``k`` (codebook views verified) and
     ``icp_iterations`` (final ICP polish; 0: the hypotheses' coarse ICP only)
     are shortcuts for its fields; ``refine=False`` skips ICP."""
@@ -139,7 +152,10 @@ def estimate(
     encoder = encoder or default_encoder()
     check_estimate_inputs(codebook, encoder, settings)
     laps = Laps()
-    query = prepare_query(cloud, codebook, settings)
+    if (depth is None) != (K is None):
+        raise InvalidCloudError("depth and K go together: give both (the frame the cloud came from) or neither")
+    frame = None if depth is None else (*checked_depth(depth, K, depth_scale), depth_scale)
+    query = prepare_query(cloud, codebook, settings, frame)
     laps("prepare_query")
     return pose_from_query(query, codebook, encoder, refine, settings, laps)
 
@@ -251,8 +267,10 @@ def pose_from_query(
             translation_constraint=tight.translation_constraint[0],
             flip_margin=flip_margin(query, codebook, result.R, result.t, tight, settings) if flips is None else flips,
             rmse_ratio=result.rmse_ratio,
+            scene_violation=loose.scene_violation[0],
         )
-        return evidence, encoder.confidence.probability(evidence) if encoder.confidence else float("nan")
+        model = encoder.confidence if query.scene is None else encoder.scene_confidence
+        return evidence, model.probability(evidence) if model else float("nan")
 
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
@@ -404,16 +422,13 @@ def doubtful(
     return bool(
         scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
         or scores.free_space_violation[0] > settings.retry_above_free_space
+        or scores.scene_violation[0] > settings.retry_above_scene_violation
     )
 
 
 def explains_more(candidate: Refined, incumbent: Refined) -> bool:
     """Whether ``candidate`` beats ``incumbent``: refined where it is not, or
-    a larger share of explained points net of free-space violations."""
+    a larger share of explained points net of free-space (and scene) violations."""
     if candidate.refined != incumbent.refined:
         return candidate.refined
-
-    def net(r: Refined) -> float:
-        return float(r.scores.inlier_fraction[0] - r.scores.free_space_violation[0])
-
-    return net(candidate) > net(incumbent)
+    return bool(candidate.scores.net[0] > incumbent.scores.net[0])

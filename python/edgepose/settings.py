@@ -97,6 +97,10 @@ class EstimateSettings:
     join the first search's candidates, ``retry_hypotheses`` of them are
     refined, and the result that explains more points net of free-space
     violations wins. Trusted poses cost nothing extra."""
+    retry_above_scene_violation: float = 0.1
+    """... as is one (with the frame's depth given) whose camera-facing model
+    points off the observed silhouette stand in front of the scene's depth
+    for more than this share of them (the pose leaves an occluder's shadow)."""
     retry_below_confidence: float = 0.5
     """... and so is one whose ``Pose.confidence`` is below this (the
     default trust rule's 0.5): a wrong pose can explain the few points of a

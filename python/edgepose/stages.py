@@ -51,13 +51,19 @@ class Query:
     """(M, 3) float32 the corrected, centred, scaled and resampled map."""
     keypoints: np.ndarray
     """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
+    scene: SceneDepth | None = None
+    """The frame's depth around the object, when the caller gave the depth
+    image (:func:`scene_around`): the scene-violation test reads it."""
     _samples: dict = field(default_factory=dict, repr=False)
 
     @cached_property
     def free_space(self) -> _core.DepthGrid:
         """The nearest observed depth along each ray of ``points`` (what the
-        free-space test of :func:`score_poses` reads), built once per query."""
-        return _core.DepthGrid(self.points, self.spacing)
+        free-space test of :func:`score_poses` reads), with the scene's depth
+        around the object when known; built once per query."""
+        if self.scene is None:
+            return _core.DepthGrid(self.points, self.spacing)
+        return _core.DepthGrid(self.points, self.spacing, self.scene.depth, self.scene.camera, self.scene.radius)
 
     def sample(self, count: int, seed: int) -> np.ndarray:
         """:func:`subsample` of ``points`` (``count``, ``seed``), drawn once
@@ -67,6 +73,41 @@ class Query:
         return self._samples[count, seed]
 
 
+@dataclass(frozen=True)
+class SceneDepth:
+    """A window of the frame's depth image around one object: what the
+    scene-violation test compares model points off the object's silhouette
+    with (see ``rust/src/scoring.rs``)."""
+
+    depth: np.ndarray
+    """(h, w) float32 C-contiguous depth of the window, metres; 0: no measurement."""
+    camera: tuple[float, float, float, float]
+    """(fx, fy, cx, cy) of the window's pixels."""
+    radius: int = 2
+    """Each pixel is read as the nearest depth within this many pixels
+    (an object's edge jitters by a pixel or two)."""
+
+
+def scene_around(
+    depth: np.ndarray, K: np.ndarray, depth_scale: float, points: np.ndarray, diameter: float
+) -> SceneDepth:
+    """The window of a checked ``depth`` image (``depth / depth_scale``
+    metres, intrinsics ``K``) that a pose of an object of ``diameter``
+    (metres) near its observed ``points`` (camera frame) can project into:
+    their pixel bounding box grown by the diameter's size in pixels at their
+    nearest depth."""
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    z = np.maximum(points[:, 2], 1e-6)
+    u, v = fx * points[:, 0] / z + cx, fy * points[:, 1] / z + cy
+    grow_u, grow_v = fx * diameter / z.min(), fy * diameter / z.min()
+    h, w = depth.shape
+    c0, c1 = int(max(u.min() - grow_u, 0)), int(min(u.max() + grow_u + 1, w))
+    r0, r1 = int(max(v.min() - grow_v, 0)), int(min(v.max() + grow_v + 1, h))
+    window = depth[r0:r1, c0:c1].astype(np.float32) / np.float32(depth_scale)
+    window[~np.isfinite(window) | (window < 0)] = 0.0
+    return SceneDepth(np.ascontiguousarray(window), (fx, fy, cx - c0, cy - r0))
+
+
 class PoseScores(NamedTuple):
     """Stage 4's terms per pose (see ``rust/src/scoring.rs``); lower ``cost`` is better."""
 
@@ -74,18 +115,38 @@ class PoseScores(NamedTuple):
     inlier_fraction: np.ndarray
     free_space_violation: np.ndarray
     cost: np.ndarray
-    """fit / inlier distance + free_space_weight × free_space_violation."""
+    """fit / inlier distance + free_space_weight × (free-space + scene violations)."""
     off_silhouette: np.ndarray
     """Share of the camera-facing model points landing where nothing was observed, 0–1."""
     translation_constraint: np.ndarray
     """How firmly the explained points pin the translation: the smallest
     eigenvalue of the mean n nᵀ of their model normals, 0 (the pose could
     slide along the seen surface) to 1/3."""
+    scene_violation: np.ndarray
+    """Share of the camera-facing model points off the observed silhouette
+    that stand in front of the scene's depth there, 0–1 (0 without a scene)."""
+
+    @property
+    def violation(self) -> np.ndarray:
+        """Free-space plus scene violations: how much the pose contradicts the view."""
+        return self.free_space_violation + self.scene_violation
+
+    @property
+    def net(self) -> np.ndarray:
+        """Inlier fraction minus :attr:`violation`: how hypotheses compete."""
+        return self.inlier_fraction - self.violation
 
 
-def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> Query:
+def prepare_query(
+    cloud: object,
+    codebook: Codebook,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+    frame: tuple[np.ndarray, np.ndarray, float] | None = None,
+) -> Query:
     """Stage 1: the object's points of ``cloud`` (camera frame, metres) and
-    its map, in one call to the Rust core (``rust/src/query.rs``)."""
+    its map, in one call to the Rust core (``rust/src/query.rs``);
+    ``frame``: the checked depth image, K and depth scale the cloud came
+    from, for the scene-violation test (:func:`scene_around`)."""
     model = codebook.model
     points, spacing, centroid, r_corr, query_map, keypoints = _core.prepare_query(
         clean_cloud(cloud, model.diameter, settings.max_cloud_points),
@@ -100,7 +161,8 @@ def prepare_query(cloud: object, codebook: Codebook, settings: EstimateSettings 
         settings.min_component_fraction,
         settings.max_component_offset,
     )
-    return Query(points, spacing, centroid, r_corr, query_map, keypoints)
+    scene = None if frame is None else scene_around(*frame, points, model.diameter)
+    return Query(points, spacing, centroid, r_corr, query_map, keypoints, scene)
 
 
 class Retrieval(NamedTuple):
@@ -191,7 +253,7 @@ def flip_margin(
     about the model's principal axes, its near turns) and moved onto the
     view: the mistakes a search makes on a near-symmetric view (a banana
     end for end, a box whose telling details are hidden).
-    Inlier fraction minus free-space violation, the pose's minus the best
+    Inlier fraction minus free-space (and scene) violations, the pose's minus the best
     turned one's that is a different pose (symmetries aside); 1 when none
     is. Near 0 or below when the view cannot tell the object from its flip.
     One call to the Rust core (``rust/src/flips.rs``)."""
@@ -207,7 +269,7 @@ def flip_margin(
         query.free_space,
         np.ascontiguousarray(R, dtype=np.float64),
         np.ascontiguousarray(t, dtype=np.float64),
-        float(scores.inlier_fraction[0] - scores.free_space_violation[0]),
+        float(scores.net[0]),
         turn_rotations,
         turn_translations,
         FLIP_ALIGN_ITERATIONS,
@@ -234,7 +296,7 @@ def score_poses(
     """Stage 4: the terms of each pose against the ``observed`` points (camera
     frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
     d = codebook.model.diameter
-    fit, inliers, violation, off_silhouette, constraint = codebook.index.score(
+    fit, inliers, violation, off_silhouette, constraint, scene = codebook.index.score(
         observed,
         query.free_space,
         np.ascontiguousarray(rotations),
@@ -243,8 +305,8 @@ def score_poses(
         settings.free_space_tolerance * d,
         settings.free_space_model_stride,
     )
-    cost = fit / inlier_distance + free_space_weight * violation
-    return PoseScores(fit, inliers, violation, cost, off_silhouette, constraint)
+    cost = fit / inlier_distance + free_space_weight * (violation + scene)
+    return PoseScores(fit, inliers, violation, cost, off_silhouette, constraint, scene)
 
 
 class Refined(NamedTuple):
@@ -310,12 +372,10 @@ def refine_hypotheses(
     inlier_distance = settings.hypothesis_inlier_distance * d
     scores = score_poses(query, codebook, coarse, hyp_R, hyp_t, inlier_distance, 0.0, settings)
     explains = scores.inlier_fraction >= settings.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
-    free = (
-        scores.free_space_violation <= scores.free_space_violation[usable].min() + settings.hypothesis_free_space_margin
-    )
+    free = scores.violation <= scores.violation[usable].min() + settings.hypothesis_free_space_margin
     competing = usable & explains & free
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
-    net = scores.inlier_fraction - scores.free_space_violation
+    net = scores.net
     rivals = usable & (pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d)
     margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
     competitors = rivals & competing

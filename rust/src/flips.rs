@@ -116,7 +116,6 @@ pub fn flip_margin(
     if rivals.is_empty() {
         return 1.0;
     }
-    let net = |s: &PoseScore| s.inlier_fraction - s.free_space_violation;
     // The rival to beat is picked on a quarter of the points and model points
     // (each look-up is a likely cache miss), then scored as the pose was.
     let best = if rivals.len() > 1 {
@@ -127,7 +126,7 @@ pub fn flip_margin(
         };
         let nets: Vec<f64> = score_poses(index, &few, grid, &rivals, &screen)
             .iter()
-            .map(net)
+            .map(PoseScore::net)
             .collect();
         (0..rivals.len())
             .max_by(|&a, &b| nets[a].total_cmp(&nets[b]))
@@ -136,7 +135,7 @@ pub fn flip_margin(
         0
     };
     let best_rival =
-        net(&score_poses(index, observed, grid, &rivals[best..=best], &settings.score)[0]);
+        score_poses(index, observed, grid, &rivals[best..=best], &settings.score)[0].net();
     own_net - best_rival
 }
 

@@ -38,7 +38,7 @@ pub use query::{
 };
 pub use refine::IcpResult;
 pub use sampling::farthest_point_sample;
-pub use scoring::{score_poses, DepthGrid, PoseScore, ScoreSettings};
+pub use scoring::{score_poses, DepthGrid, PoseScore, SceneDepth, ScoreSettings};
 pub use search::{top_k, verify};
 pub use segment::{segment, SegmentSettings, Segmentation};
 pub use views::{fibonacci_directions, ray_alignment, view_rotation, viewpoints, Rotation};

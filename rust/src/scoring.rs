@@ -13,7 +13,13 @@
 //!   cannot tell a turned-over pose whose back hugs the observed surface
 //!   while its other side sticks out towards the camera; this can. Hidden
 //!   parts (behind an occluder, outside the mask) are unknown space and
-//!   never count.
+//!   never count;
+//! * **scene violation** (only when the frame's depth around the object is
+//!   given, [`SceneDepth`]): a camera-facing model point off the object's
+//!   observed silhouette is either hidden by something nearer (an occluder:
+//!   fine) or it would stand in front of the background the camera saw there
+//!   (a contradiction). A pose slid or turned out of an occluder's shadow
+//!   shows itself this way.
 //!
 //! Camera frame (OpenCV), metres.
 
@@ -21,10 +27,81 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
 use crate::index::{ModelIndex, Pose};
+use crate::query::Pinhole;
 use crate::Point3;
 
+/// The frame's depth around the object (the whole scene there, not only the
+/// object's mask), for the scene-violation test: each pixel holds the
+/// nearest measured depth within `radius` pixels of it (metres; infinite
+/// where none), so a model point on the object's own jittered edge is
+/// compared with the edge, not with the background just beside it.
+pub struct SceneDepth {
+    camera: Pinhole,
+    width: usize,
+    height: usize,
+    nearest: Vec<f32>,
+}
+
+impl SceneDepth {
+    /// From a row-major `width`-wide depth image in metres (0 or not finite:
+    /// no measurement) and the intrinsics of its pixels; `radius` pixels of
+    /// neighbourhood (a separable minimum filter).
+    pub fn new(depth: &[f32], width: usize, camera: Pinhole, radius: usize) -> Self {
+        let height = if width == 0 { 0 } else { depth.len() / width };
+        let measured: Vec<f32> = depth[..width * height]
+            .iter()
+            .map(|&z| {
+                if z.is_finite() && z > 0.0 {
+                    z
+                } else {
+                    f32::INFINITY
+                }
+            })
+            .collect();
+        let mut rows = vec![f32::INFINITY; width * height];
+        for v in 0..height {
+            let row = &measured[v * width..(v + 1) * width];
+            for u in 0..width {
+                let (a, b) = (u.saturating_sub(radius), (u + radius + 1).min(width));
+                rows[v * width + u] = row[a..b].iter().copied().fold(f32::INFINITY, f32::min);
+            }
+        }
+        let mut nearest = vec![f32::INFINITY; width * height];
+        for v in 0..height {
+            let (a, b) = (v.saturating_sub(radius), (v + radius + 1).min(height));
+            for u in 0..width {
+                nearest[v * width + u] = (a..b)
+                    .map(|r| rows[r * width + u])
+                    .fold(f32::INFINITY, f32::min);
+            }
+        }
+        Self {
+            camera,
+            width,
+            height,
+            nearest,
+        }
+    }
+
+    /// The nearest measured depth (metres) around the pixel of `p` (camera
+    /// frame), or `None` off the image or where nothing was measured.
+    pub fn depth_at(&self, p: &Vector3<f64>) -> Option<f64> {
+        if p.z <= 0.0 {
+            return None;
+        }
+        let u = (self.camera.fx * p.x / p.z + self.camera.cx).round();
+        let v = (self.camera.fy * p.y / p.z + self.camera.cy).round();
+        if !(u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64) {
+            return None;
+        }
+        let z = self.nearest[v as usize * self.width + u as usize];
+        z.is_finite().then_some(z as f64)
+    }
+}
+
 /// The observed depth by viewing direction: the nearest observed depth in
-/// each cell of a grid over the normalised image plane `(x/z, y/z)`.
+/// each cell of a grid over the normalised image plane `(x/z, y/z)`, and
+/// the frame's depth around the object when it is known ([`Self::with_scene`]).
 pub struct DepthGrid {
     cell: f64,
     u0: f64,
@@ -32,6 +109,7 @@ pub struct DepthGrid {
     cols: usize,
     rows: usize,
     nearest: Vec<f32>,
+    scene: Option<SceneDepth>,
 }
 
 /// Cells per side at most: bounds memory whatever the cloud's spread.
@@ -55,6 +133,7 @@ impl DepthGrid {
                 cols: 0,
                 rows: 0,
                 nearest: Vec::new(),
+                scene: None,
             };
         }
         let mut depths: Vec<f32> = front.iter().map(|p| p.2).collect();
@@ -87,6 +166,15 @@ impl DepthGrid {
             cols,
             rows,
             nearest,
+            scene: None,
+        }
+    }
+
+    /// This grid with the frame's depth around the object, for the scene-violation test.
+    pub fn with_scene(self, scene: SceneDepth) -> Self {
+        Self {
+            scene: Some(scene),
+            ..self
         }
     }
 
@@ -140,6 +228,18 @@ pub struct PoseScore {
     /// leaving the surface (one face of a box, the side of a can), up to
     /// 1/3 for normals spread evenly; 0 with fewer than 3 inliers.
     pub translation_constraint: f64,
+    /// Share of the camera-facing model points that land off the observed
+    /// silhouette in front of the scene's measured depth there (by more than
+    /// the free-space tolerance), 0–1; 0 when the grid has no scene.
+    pub scene_violation: f64,
+}
+
+impl PoseScore {
+    /// Explained share net of what contradicts the view: the inlier fraction
+    /// minus the free-space and scene violations (how hypotheses compete).
+    pub fn net(&self) -> f64 {
+        self.inlier_fraction - self.free_space_violation - self.scene_violation
+    }
 }
 
 /// Moves each pose's translation so the `observed` points (camera frame)
@@ -241,7 +341,8 @@ fn score_pose(
     } else {
         0.0
     };
-    let (mut facing, mut on_rays, mut violations) = (0usize, 0usize, 0usize);
+    let (mut facing, mut on_rays, mut violations, mut in_front_of_scene) =
+        (0usize, 0usize, 0usize, 0usize);
     let stride = settings.model_stride.max(1);
     for (p, n) in index.points().iter().zip(index.normals()).step_by(stride) {
         let pc = pose.apply(p);
@@ -254,6 +355,10 @@ fn score_pose(
             on_rays += 1;
             if pc.z < z - settings.free_space_tolerance {
                 violations += 1;
+            }
+        } else if let Some(z) = grid.scene.as_ref().and_then(|s| s.depth_at(&pc)) {
+            if pc.z < z - settings.free_space_tolerance {
+                in_front_of_scene += 1;
             }
         }
     }
@@ -272,6 +377,7 @@ fn score_pose(
             (facing - on_rays) as f64 / facing as f64
         },
         translation_constraint,
+        scene_violation: in_front_of_scene as f64 / facing.max(1) as f64,
     }
 }
 
@@ -494,6 +600,62 @@ mod tests {
             pinned.translation_constraint > 0.05
                 && pinned.translation_constraint <= 1.0 / 3.0 + 1e-9,
             "{pinned:?}"
+        );
+    }
+
+    #[test]
+    fn the_scene_tells_a_pose_hidden_by_an_occluder_from_one_before_the_background() {
+        // 100 × 100 px image: background 1 m away, an occluder 0.5 m away over its left half.
+        let camera = Pinhole {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 50.0,
+            cy: 50.0,
+        };
+        let depth: Vec<f32> = (0..100 * 100)
+            .map(|i| if i % 100 < 50 { 0.5 } else { 1.0 })
+            .collect();
+        let (points, normals) = box_surface([0.0; 3], [0.05, 0.05, 0.05], 0.005);
+        let index = ModelIndex::new(points, normals);
+        let nothing_seen = |scene: Option<SceneDepth>| {
+            let grid = DepthGrid::new(&[], 0.01, 2.0);
+            match scene {
+                Some(s) => grid.with_scene(s),
+                None => grid,
+            }
+        };
+        let at = |x: f64| Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(x, 0.0, 0.8),
+        };
+        let (hidden, in_front) = (at(-0.2), at(0.2));
+        let scene = || Some(SceneDepth::new(&depth, 100, camera, 2));
+        let scores = score_poses(
+            &index,
+            &[],
+            &nothing_seen(scene()),
+            &[hidden, in_front],
+            &settings(),
+        );
+        assert_eq!(
+            scores[0].scene_violation, 0.0,
+            "behind the occluder: unknown space"
+        );
+        assert!(
+            scores[1].scene_violation > 0.95,
+            "{}: it would hide the background",
+            scores[1].scene_violation
+        );
+        let blind = score_poses(&index, &[], &nothing_seen(None), &[in_front], &settings());
+        assert_eq!(blind[0].scene_violation, 0.0, "no scene, no test");
+        // Within `radius` pixels of a nearer measurement, a point is that measurement's.
+        let edge = SceneDepth::new(&depth, 100, camera, 2);
+        assert_eq!(edge.depth_at(&Vector3::new(0.008, 0.0, 1.0)), Some(0.5));
+        assert_eq!(edge.depth_at(&Vector3::new(0.05, 0.0, 1.0)), Some(1.0));
+        assert_eq!(
+            edge.depth_at(&Vector3::new(0.9, 0.0, 1.0)),
+            None,
+            "off the image"
         );
     }
 }

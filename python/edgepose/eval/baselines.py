@@ -298,9 +298,12 @@ class EdgePoseMethod:
 
     name = "edgepose"
 
-    def __init__(self, **estimate_options: Any) -> None:
+    def __init__(self, uses_frame: bool = False, **estimate_options: Any) -> None:
         if not available_edgepose():
             raise RuntimeError("this edgepose has no build_codebook()/estimate() yet")
+        self.uses_frame = uses_frame
+        """Whether the benchmark hands it each view's depth frame too
+        (``estimate(cloud, codebook, depth=, K=)``)."""
         self.estimate_options = estimate_options
         self.last = LastRun()
         self._codebook: Any = None
@@ -308,10 +311,14 @@ class EdgePoseMethod:
     def prepare(self, mesh: trimesh.Trimesh) -> None:
         self._codebook = edgepose.build_codebook(mesh)  # type: ignore[attr-defined]
 
-    def estimate(self, cloud: np.ndarray) -> np.ndarray:
+    def estimate(self, cloud: np.ndarray, frame: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """``frame``: the view's (depth (H, W) metres, K), used when ``uses_frame``."""
         if self._codebook is None:
             raise RuntimeError(f"{self.name}: call prepare(mesh) first")
-        pose = edgepose.estimate(cloud, self._codebook, **self.estimate_options)  # type: ignore[attr-defined]
+        options = dict(self.estimate_options)
+        if frame is not None and self.uses_frame:
+            options.update(depth=frame[0], K=frame[1], depth_scale=1.0)
+        pose = edgepose.estimate(cloud, self._codebook, **options)  # type: ignore[attr-defined]
         timings = getattr(pose, "timings", None)
         self.last = LastRun(
             found=True,

@@ -50,6 +50,10 @@ class BenchObject:
     """Per view: achieved visible fraction of the object (1 when unoccluded)."""
     spill: list[float] = field(default_factory=list)
     """Per view: spilled (off-object) points / object points in the cloud."""
+    frames: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    """Per view: the whole depth frame the cloud was cut from, ((H, W)
+    float32 metres, 0: no measurement; K (3, 3)), for methods that use it
+    (``uses_frame``)."""
 
 
 @dataclass
@@ -129,6 +133,7 @@ def load_object(
             raise ValueError("occluders (flat rectangles) apply to the clean level only; stress levels set their own")
         scenes = [render_scene(mesh, stress, seed=s) for s in seeds]
         clouds, poses = [v.cloud for v in scenes], [v.T_cam_obj for v in scenes]
+        frames = [(v.depth, v.K) for v in scenes]
         visible, spill = [v.visible_fraction for v in scenes], [v.spill_fraction for v in scenes]
     else:
         views = [
@@ -144,6 +149,7 @@ def load_object(
             for s in seeds
         ]
         clouds, poses = [v.cloud for v in views], [v.T_cam_obj for v in views]
+        frames = [(v.depth, v.camera.K) for v in views]
         visible, spill = [float("nan") if occluders else 1.0] * len(seeds), [0.0] * len(seeds)
     return BenchObject(
         name=name,
@@ -157,6 +163,7 @@ def load_object(
         stress=stress.name,
         visible=visible,
         spill=spill,
+        frames=frames,
     )
 
 
@@ -174,10 +181,11 @@ def run_method(
         t0 = time.perf_counter()
         method.prepare(obj.mesh)
         run.prepare_s[obj.name] = time.perf_counter() - t0
-        timed_estimate(method, obj.clouds[0])
+        frames: list[tuple[np.ndarray, np.ndarray] | None] = list(obj.frames) or [None] * len(obj.clouds)
+        timed_estimate(method, obj.clouds[0], frames[0])
         done: list[ViewResult] = []
         for i, (cloud, T_gt, seed) in enumerate(zip(obj.clouds, obj.poses, obj.seeds)):
-            T_est, latency, error = timed_estimate(method, cloud)
+            T_est, latency, error = timed_estimate(method, cloud, frames[i])
             last = getattr(method, "last", None)
             result = ViewResult(
                 method=name,
@@ -204,11 +212,18 @@ def merge_runs(name: str, runs: list[MethodRun]) -> MethodRun:
     return MethodRun(name, {o: s for r in runs for o, s in r.prepare_s.items()}, [v for r in runs for v in r.views])
 
 
-def timed_estimate(method: PoseMethod, cloud: np.ndarray) -> tuple[np.ndarray, float, str]:
-    """(T_est, seconds, error message); an exception counts as a miss (NO_POSE)."""
+def timed_estimate(
+    method: PoseMethod, cloud: np.ndarray, frame: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, float, str]:
+    """(T_est, seconds, error message); an exception counts as a miss
+    (NO_POSE). A method whose ``uses_frame`` is true also gets the view's
+    depth ``frame`` (when there is one)."""
     t0 = time.perf_counter()
     try:
-        T = np.asarray(method.estimate(cloud), dtype=np.float64)
+        if frame is not None and getattr(method, "uses_frame", False):
+            T = np.asarray(method.estimate(cloud, frame=frame), dtype=np.float64)  # type: ignore[call-arg]
+        else:
+            T = np.asarray(method.estimate(cloud), dtype=np.float64)
         error = ""
     except Exception as e:  # a failed estimate is a result, not a crash
         T, error = NO_POSE.copy(), f"{type(e).__name__}: {e}"

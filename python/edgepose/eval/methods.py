@@ -43,6 +43,12 @@ METHODS: dict[str, MethodSpec] = {
             "truncated-fit + free-space scoring, ICP of the best distinct candidates (settings below)",
         ),
         MethodSpec(
+            "edgepose-frame",
+            lambda: EdgePoseMethod(uses_frame=True),
+            "edgepose given the view's whole depth frame too (estimate(cloud, codebook, depth=, K=)): poses "
+            "are also checked against the scene around the object",
+        ),
+        MethodSpec(
             "edgepose-norefine",
             lambda: EdgePoseMethod(refine=False),
             "the same without ICP (estimate(..., refine=False)): the verified codebook pose alone",

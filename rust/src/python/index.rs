@@ -3,7 +3,7 @@
 
 use numpy::{
     PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
-    PyReadonlyArray3,
+    PyReadonlyArray3, PyUntypedArrayMethods,
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -14,8 +14,9 @@ use super::{guarded, InvalidCloudError};
 use crate::flips::{flip_margin, pose_distances, FlipSettings};
 use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
+use crate::query::Pinhole;
 use crate::refine::IcpResult;
-use crate::scoring::{align_translations, score_poses, DepthGrid, ScoreSettings};
+use crate::scoring::{align_translations, score_poses, DepthGrid, SceneDepth, ScoreSettings};
 use crate::{search, Point3};
 
 /// Borrows an observed cloud (N, 3) float32, camera frame; a bad shape is an
@@ -26,7 +27,11 @@ fn cloud_triples<'a>(array: &'a PyReadonlyArray2<'_, f32>, name: &str) -> PyResu
 
 /// The nearest observed depth along each ray of an observed cloud (camera
 /// frame, metres): what scoring's free-space test reads. Built once per
-/// query, with cells of about two point `spacing`s. Immutable.
+/// query, with cells of about two point `spacing`s. With `scene_depth`
+/// ((H, W) float32 metres, 0: none; the frame around the object) and
+/// `scene_camera` (fx, fy, cx, cy of those pixels), scoring also tests the
+/// model points off the object's silhouette against the scene, each pixel
+/// read as the nearest depth within `scene_radius` pixels. Immutable.
 #[pyclass(frozen, name = "DepthGrid", module = "edgepose._core")]
 pub struct PyDepthGrid {
     inner: DepthGrid,
@@ -35,7 +40,15 @@ pub struct PyDepthGrid {
 #[pymethods]
 impl PyDepthGrid {
     #[new]
-    fn new(py: Python<'_>, cloud: PyReadonlyArray2<'_, f32>, spacing: f64) -> PyResult<Self> {
+    #[pyo3(signature = (cloud, spacing, scene_depth=None, scene_camera=None, scene_radius=2))]
+    fn new(
+        py: Python<'_>,
+        cloud: PyReadonlyArray2<'_, f32>,
+        spacing: f64,
+        scene_depth: Option<PyReadonlyArray2<'_, f32>>,
+        scene_camera: Option<[f64; 4]>,
+        scene_radius: usize,
+    ) -> PyResult<Self> {
         guarded(|| {
             let c = cloud_triples(&cloud, "cloud")?;
             if !(spacing.is_finite() && spacing >= 0.0) {
@@ -43,8 +56,38 @@ impl PyDepthGrid {
                     "spacing must be finite and non-negative, got {spacing}"
                 )));
             }
+            let scene = match (&scene_depth, scene_camera) {
+                (None, None) => None,
+                (Some(depth), Some([fx, fy, cx, cy])) => {
+                    if ![fx, fy, cx, cy].iter().all(|v| v.is_finite()) || fx <= 0.0 || fy <= 0.0 {
+                        return Err(PyValueError::new_err(
+                            "scene_camera must be finite (fx, fy, cx, cy) with positive focal lengths",
+                        ));
+                    }
+                    let width = depth.shape()[1];
+                    let pixels = depth.as_slice().map_err(|_| {
+                        PyValueError::new_err(
+                            "scene_depth must be a C-contiguous (H, W) float32 array",
+                        )
+                    })?;
+                    Some((pixels, width, Pinhole { fx, fy, cx, cy }))
+                }
+                _ => {
+                    return Err(PyValueError::new_err(
+                        "scene_depth and scene_camera go together: give both or neither",
+                    ))
+                }
+            };
             Ok(Self {
-                inner: py.detach(|| DepthGrid::new(c, spacing, 2.0)),
+                inner: py.detach(|| {
+                    let grid = DepthGrid::new(c, spacing, 2.0);
+                    match scene {
+                        Some((pixels, width, camera)) => {
+                            grid.with_scene(SceneDepth::new(pixels, width, camera, scene_radius))
+                        }
+                        None => grid,
+                    }
+                }),
             })
         })
     }
@@ -142,7 +185,8 @@ impl PyModelIndex {
     /// `translations` (C, 3)) against the `observed` points and the whole
     /// observed cloud's `free_space` grid: `(fit (C,) metres, inlier_fraction (C,),
     /// free_space_violation (C,), off_silhouette (C,),
-    /// translation_constraint (C,))` (see the core's `scoring` module).
+    /// translation_constraint (C,), scene_violation (C,))` (see the core's
+    /// `scoring` module).
     #[allow(clippy::too_many_arguments)]
     fn score<'py>(
         &self,
@@ -182,6 +226,7 @@ impl PyModelIndex {
                     py,
                     scores.iter().map(|s| s.translation_constraint).collect(),
                 ),
+                PyArray1::from_vec(py, scores.iter().map(|s| s.scene_violation).collect()),
             )
                 .into_pyobject(py)
                 .map(|t| t.into_any())
