@@ -127,11 +127,15 @@ def test_confidence_data_include_a_mislabelled_detection_and_the_fit_ranks_it_lo
 
     from export import confidence
 
-    rows = confidence.collect_object((0, "block", trimesh.creation.box([0.05, 0.08, 0.12]), 2, ["clean"], 2))
+    block = trimesh.creation.box([0.05, 0.08, 0.12])
+    rows = confidence.collect_object((0, "block", block, 2, ["clean"], 2, False))
     assert rows["level"] == ["clean", "clean", confidence.OTHER_OBJECT, confidence.OTHER_OBJECT]
     assert rows["correct"][2:] == [False, False] and all(np.isnan(rows["error"][2:]))
     assert all(rows["correct"][:2]) and max(rows["error"][:2]) < 0.1 and max(rows["error_s"][:2]) < 0.1
-    assert all(len(e) == len(FEATURES) for e in rows["evidence"])
+    assert all(len(e) == len(confidence.CLOUD_FEATURES) for e in rows["evidence"])
+    # Given the depth frames too, the evidence holds the scene terms as well.
+    framed = confidence.collect_object((0, "block", block, 1, ["visible70"], 0, True))
+    assert [len(e) for e in framed["evidence"]] == [len(FEATURES)] and "scene_violation" in FEATURES
     # A fit on these rows (repeated, lightly jittered) ranks the right ones first.
     rng = np.random.default_rng(0)
     evidence = np.repeat(np.array(rows["evidence"]), 20, axis=0)

@@ -94,18 +94,23 @@ def scene_around(
     """The window of a checked ``depth`` image (``depth / depth_scale``
     metres, intrinsics ``K``) that a pose of an object of ``diameter``
     (metres) near its observed ``points`` (camera frame) can project into:
-    their pixel bounding box grown by the diameter's size in pixels at their
-    nearest depth."""
+    their pixel bounding box grown by ``SCENE_MARGIN`` × the diameter's size
+    in pixels at their nearest depth."""
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
     z = np.maximum(points[:, 2], 1e-6)
     u, v = fx * points[:, 0] / z + cx, fy * points[:, 1] / z + cy
-    grow_u, grow_v = fx * diameter / z.min(), fy * diameter / z.min()
+    grow_u, grow_v = (f * SCENE_MARGIN * diameter / z.min() for f in (fx, fy))
     h, w = depth.shape
     c0, c1 = int(max(u.min() - grow_u, 0)), int(min(u.max() + grow_u + 1, w))
     r0, r1 = int(max(v.min() - grow_v, 0)), int(min(v.max() + grow_v + 1, h))
-    window = depth[r0:r1, c0:c1].astype(np.float32) / np.float32(depth_scale)
-    window[~np.isfinite(window) | (window < 0)] = 0.0
-    return SceneDepth(np.ascontiguousarray(window), (fx, fy, cx - c0, cy - r0))
+    window = np.divide(depth[r0:r1, c0:c1], depth_scale, dtype=np.float32)  # the core reads NaN, inf, ≤ 0 as none
+    return SceneDepth(window, (fx, fy, cx - c0, cy - r0))
+
+
+#: How far beyond the observed points (× d) the scene window reaches: a pose
+#: the search keeps (its centre within 1.25 model radii of the observed
+#: centroid) puts almost all of its model there.
+SCENE_MARGIN = 0.75
 
 
 class PoseScores(NamedTuple):

@@ -31,24 +31,25 @@ use crate::query::Pinhole;
 use crate::Point3;
 
 /// The frame's depth around the object (the whole scene there, not only the
-/// object's mask), for the scene-violation test: each pixel holds the
-/// nearest measured depth within `radius` pixels of it (metres; infinite
-/// where none), so a model point on the object's own jittered edge is
-/// compared with the edge, not with the background just beside it.
+/// object's mask), for the scene-violation test. A model point is compared
+/// with the nearest measured depth within `radius` pixels of its pixel, so a
+/// point on the object's own jittered edge is compared with the edge, not
+/// with the background just beside it.
 pub struct SceneDepth {
     camera: Pinhole,
     width: usize,
     height: usize,
-    nearest: Vec<f32>,
+    radius: usize,
+    depth: Vec<f32>,
 }
 
 impl SceneDepth {
     /// From a row-major `width`-wide depth image in metres (0 or not finite:
     /// no measurement) and the intrinsics of its pixels; `radius` pixels of
-    /// neighbourhood (a separable minimum filter).
+    /// neighbourhood.
     pub fn new(depth: &[f32], width: usize, camera: Pinhole, radius: usize) -> Self {
         let height = if width == 0 { 0 } else { depth.len() / width };
-        let measured: Vec<f32> = depth[..width * height]
+        let depth = depth[..width * height]
             .iter()
             .map(|&z| {
                 if z.is_finite() && z > 0.0 {
@@ -58,44 +59,67 @@ impl SceneDepth {
                 }
             })
             .collect();
-        let mut rows = vec![f32::INFINITY; width * height];
-        for v in 0..height {
-            let row = &measured[v * width..(v + 1) * width];
-            for u in 0..width {
-                let (a, b) = (u.saturating_sub(radius), (u + radius + 1).min(width));
-                rows[v * width + u] = row[a..b].iter().copied().fold(f32::INFINITY, f32::min);
-            }
-        }
-        let mut nearest = vec![f32::INFINITY; width * height];
-        for v in 0..height {
-            let (a, b) = (v.saturating_sub(radius), (v + radius + 1).min(height));
-            for u in 0..width {
-                nearest[v * width + u] = (a..b)
-                    .map(|r| rows[r * width + u])
-                    .fold(f32::INFINITY, f32::min);
-            }
-        }
         Self {
             camera,
             width,
             height,
-            nearest,
+            radius,
+            depth,
         }
     }
 
-    /// The nearest measured depth (metres) around the pixel of `p` (camera
-    /// frame), or `None` off the image or where nothing was measured.
-    pub fn depth_at(&self, p: &Vector3<f64>) -> Option<f64> {
+    /// The pixel (column, row) of `p` (camera frame), if on the image.
+    fn pixel(&self, p: &Vector3<f64>) -> Option<(usize, usize)> {
         if p.z <= 0.0 {
             return None;
         }
         let u = (self.camera.fx * p.x / p.z + self.camera.cx).round();
         let v = (self.camera.fy * p.y / p.z + self.camera.cy).round();
-        if !(u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64) {
-            return None;
+        (u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64)
+            .then_some((u as usize, v as usize))
+    }
+
+    /// The nearest measured depth (metres) within `radius` pixels of the
+    /// pixel of `p` (camera frame), or `None` off the image or where nothing
+    /// was measured.
+    pub fn depth_at(&self, p: &Vector3<f64>) -> Option<f64> {
+        let (u, v) = self.pixel(p)?;
+        let mut nearest = f32::INFINITY;
+        for row in v.saturating_sub(self.radius)..(v + self.radius + 1).min(self.height) {
+            let line = &self.depth[row * self.width..(row + 1) * self.width];
+            let (a, b) = (
+                u.saturating_sub(self.radius),
+                (u + self.radius + 1).min(self.width),
+            );
+            nearest = line[a..b].iter().copied().fold(nearest, f32::min);
         }
-        let z = self.nearest[v as usize * self.width + u as usize];
-        z.is_finite().then_some(z as f64)
+        nearest.is_finite().then_some(nearest as f64)
+    }
+
+    /// Whether `p` (camera frame) stands in front of every measured depth
+    /// within `radius` pixels of its pixel by more than `tolerance` metres
+    /// (and something was measured there): the model would hide what the
+    /// camera saw. Stops at the first measurement that is not behind it.
+    pub fn in_front(&self, p: &Vector3<f64>, tolerance: f64) -> bool {
+        let Some((u, v)) = self.pixel(p) else {
+            return false;
+        };
+        let limit = (p.z + tolerance) as f32;
+        let mut measured = false;
+        for row in v.saturating_sub(self.radius)..(v + self.radius + 1).min(self.height) {
+            let line = &self.depth[row * self.width..(row + 1) * self.width];
+            let (a, b) = (
+                u.saturating_sub(self.radius),
+                (u + self.radius + 1).min(self.width),
+            );
+            for &z in &line[a..b] {
+                if z <= limit {
+                    return false;
+                }
+                measured |= z.is_finite();
+            }
+        }
+        measured
     }
 }
 
@@ -356,8 +380,8 @@ fn score_pose(
             if pc.z < z - settings.free_space_tolerance {
                 violations += 1;
             }
-        } else if let Some(z) = grid.scene.as_ref().and_then(|s| s.depth_at(&pc)) {
-            if pc.z < z - settings.free_space_tolerance {
+        } else if let Some(scene) = &grid.scene {
+            if scene.in_front(&pc, settings.free_space_tolerance) {
                 in_front_of_scene += 1;
             }
         }
