@@ -193,7 +193,7 @@ def main() -> None:
         "--frame", action="store_true", help="give estimate each view's depth frame too: the with_scene model"
     )
     args = parser.parse_args()
-    names = FRAME_FEATURES if args.frame else CLOUD_FEATURES
+    features = FRAME_FEATURES if args.frame else CLOUD_FEATURES
     if args.save_data == parser.get_default("save_data") and args.frame:
         args.save_data = CACHE / "confidence_data_frame.npz"
 
@@ -204,8 +204,8 @@ def main() -> None:
     if args.data:
         data = np.load(args.data)
         objects, levels, correct, evidence = data["object"], data["level"], data["correct"], data["evidence"]
-        if list(data["features"]) != list(names):
-            parser.error(f"{args.data} holds features {list(data['features'])}, not {list(names)}")
+        if list(data["features"]) != list(features):
+            parser.error(f"{args.data} holds features {list(data['features'])}, not {list(features)}")
     else:
         meshes = training_objects(args.procedural, args.blob_every)
         jobs = [
@@ -230,7 +230,7 @@ def main() -> None:
             evidence=evidence,
             error=error,
             error_s=error_s,
-            features=names,
+            features=features,
         )
         print(f"evidence saved to {args.save_data} ({time.perf_counter() - t0:.0f} s)")
 
@@ -240,8 +240,8 @@ def main() -> None:
     folds = np.array([fold_of[o] for o in objects])
     held_out = np.empty(len(correct))
     for f in range(4):
-        model = fit_model(evidence[folds != f], correct[folds != f], names)
-        held_out[folds == f] = [model.probability(dict(zip(names, row))) for row in evidence[folds == f]]
+        model = fit_model(evidence[folds != f], correct[folds != f], features)
+        held_out[folds == f] = [model.probability(dict(zip(features, row))) for row in evidence[folds == f]]
     print(f"\n4-fold cross-validation by object ({len(names)} objects):")
     # The benchmark's levels: the mislabelled views (all wrong) are reported apart.
     clean, other = levels == "clean", levels == OTHER_OBJECT
@@ -261,7 +261,7 @@ def main() -> None:
             f"{summary[OTHER_OBJECT]['trusted']:.1%}"
         )
 
-    model = fit_model(evidence, correct, names)
+    model = fit_model(evidence, correct, features)
     print("\nfitted on all:", json.dumps(model.to_manifest()["weights"]))
     if args.write:
         directory = args.models or MODELS_DIR

@@ -53,6 +53,23 @@ def test_a_turned_pose_is_less_trusted_than_the_right_one(drill):
     assert model.probability(good) > 0.9 and model.probability(bad) < 0.2
 
 
+def test_a_pose_given_the_depth_frame_is_judged_by_the_model_that_reads_the_scene(drill):
+    from edgepose.confidence import SCENE_FEATURES
+    from edgepose.eval.scenes import render_scene
+
+    mesh, codebook = drill
+    encoder = edgepose.encoder.default_encoder()
+    cloud_model, scene_model = encoder.confidence, encoder.scene_confidence
+    assert cloud_model is not None and scene_model is not None
+    assert not set(SCENE_FEATURES) & set(cloud_model.features)
+    assert set(SCENE_FEATURES) <= set(scene_model.features)
+    view = render_scene(mesh, "visible70", seed=5)
+    framed = edgepose.estimate(view.cloud, codebook, depth=view.depth, K=view.K, depth_scale=1.0)
+    alone = edgepose.estimate(view.cloud, codebook)
+    assert framed.confidence == pytest.approx(scene_model.probability(framed.evidence))
+    assert alone.confidence == pytest.approx(cloud_model.probability(alone.evidence))
+
+
 def test_a_malformed_confidence_model_is_a_model_files_error(tmp_path):
     for name in ("encoder.onnx", "irr.onnx"):
         shutil.copy(MODELS_DIR / name, tmp_path / name)
@@ -60,6 +77,11 @@ def test_a_malformed_confidence_model_is_a_model_files_error(tmp_path):
     manifest["confidence"]["features"] = {"mystery": "a term no edgepose computes"}
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(edgepose.ModelFilesError, match="mystery"):
+        Encoder(tmp_path)
+    manifest = json.loads((MODELS_DIR / "manifest.json").read_text())
+    manifest["confidence"]["with_scene"]["weights"] = [1.0]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(edgepose.ModelFilesError, match="one per term"):
         Encoder(tmp_path)
     del manifest["confidence"]
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))

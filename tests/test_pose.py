@@ -258,7 +258,9 @@ def test_the_depth_frame_exposes_a_pose_out_of_the_occluders_shadow(drill):
     scores = score_poses(seen, codebook, seen.points, rotations, translations, 0.02 * d, 0.0)
     assert scores.scene_violation[0] < 0.05
     assert scores.scene_violation[1:].max() > 0.2, scores.scene_violation
-    assert (score_poses(blind, codebook, blind.points, rotations, translations, 0.02 * d, 0.0).scene_violation == 0).all()
+    assert (
+        score_poses(blind, codebook, blind.points, rotations, translations, 0.02 * d, 0.0).scene_violation == 0
+    ).all()
 
     pose = edgepose.estimate(view.cloud, codebook, depth=view.depth, K=view.K, depth_scale=1.0)
     assert errors(pose, view, codebook).correct_add_or_s
