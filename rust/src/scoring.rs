@@ -48,7 +48,7 @@ impl SceneDepth {
     /// no measurement) and the intrinsics of its pixels; `radius` pixels of
     /// neighbourhood.
     pub fn new(depth: &[f32], width: usize, camera: Pinhole, radius: usize) -> Self {
-        let height = if width == 0 { 0 } else { depth.len() / width };
+        let height = depth.len().checked_div(width).unwrap_or(0);
         let depth = depth[..width * height]
             .iter()
             .map(|&z| {
@@ -79,21 +79,19 @@ impl SceneDepth {
             .then_some((u as usize, v as usize))
     }
 
-    /// The nearest measured depth (metres) within `radius` pixels of the
-    /// pixel of `p` (camera frame), or `None` off the image or where nothing
-    /// was measured.
-    pub fn depth_at(&self, p: &Vector3<f64>) -> Option<f64> {
-        let (u, v) = self.pixel(p)?;
-        let mut nearest = f32::INFINITY;
-        for row in v.saturating_sub(self.radius)..(v + self.radius + 1).min(self.height) {
-            let line = &self.depth[row * self.width..(row + 1) * self.width];
-            let (a, b) = (
-                u.saturating_sub(self.radius),
-                (u + self.radius + 1).min(self.width),
-            );
-            nearest = line[a..b].iter().copied().fold(nearest, f32::min);
-        }
-        nearest.is_finite().then_some(nearest as f64)
+    /// The measured depths (infinite: none) within `radius` pixels of pixel (`u`, `v`).
+    fn around(&self, u: usize, v: usize) -> impl Iterator<Item = f32> + '_ {
+        let (a, b) = (
+            u.saturating_sub(self.radius),
+            (u + self.radius + 1).min(self.width),
+        );
+        (v.saturating_sub(self.radius)..(v + self.radius + 1).min(self.height)).flat_map(
+            move |row| {
+                self.depth[row * self.width + a..row * self.width + b]
+                    .iter()
+                    .copied()
+            },
+        )
     }
 
     /// Whether `p` (camera frame) stands in front of every measured depth
@@ -106,18 +104,11 @@ impl SceneDepth {
         };
         let limit = (p.z + tolerance) as f32;
         let mut measured = false;
-        for row in v.saturating_sub(self.radius)..(v + self.radius + 1).min(self.height) {
-            let line = &self.depth[row * self.width..(row + 1) * self.width];
-            let (a, b) = (
-                u.saturating_sub(self.radius),
-                (u + self.radius + 1).min(self.width),
-            );
-            for &z in &line[a..b] {
-                if z <= limit {
-                    return false;
-                }
-                measured |= z.is_finite();
+        for z in self.around(u, v) {
+            if z <= limit {
+                return false;
             }
+            measured |= z.is_finite();
         }
         measured
     }
@@ -672,14 +663,22 @@ mod tests {
         );
         let blind = score_poses(&index, &[], &nothing_seen(None), &[in_front], &settings());
         assert_eq!(blind[0].scene_violation, 0.0, "no scene, no test");
-        // Within `radius` pixels of a nearer measurement, a point is that measurement's.
+        // Within `radius` pixels of a nearer measurement, a point is behind it.
         let edge = SceneDepth::new(&depth, 100, camera, 2);
-        assert_eq!(edge.depth_at(&Vector3::new(0.008, 0.0, 1.0)), Some(0.5));
-        assert_eq!(edge.depth_at(&Vector3::new(0.05, 0.0, 1.0)), Some(1.0));
-        assert_eq!(
-            edge.depth_at(&Vector3::new(0.9, 0.0, 1.0)),
-            None,
+        assert!(!edge.in_front(&Vector3::new(0.006, 0.0, 0.8), 0.01));
+        assert!(edge.in_front(&Vector3::new(0.04, 0.0, 0.8), 0.01));
+        assert!(
+            !edge.in_front(&Vector3::new(0.04, 0.0, 0.995), 0.01),
+            "within the tolerance"
+        );
+        assert!(
+            !edge.in_front(&Vector3::new(0.9, 0.0, 0.8), 0.01),
             "off the image"
+        );
+        let unmeasured = SceneDepth::new(&[0.0; 100], 10, camera, 2);
+        assert!(
+            !unmeasured.in_front(&Vector3::new(-0.45, -0.45, 1.0), 0.01),
+            "nothing measured"
         );
     }
 }
