@@ -221,19 +221,21 @@ def test_doubt_is_a_pose_that_explains_too_few_points_or_violates_free_space(dri
     query = prepare_query(view.cloud, codebook)
     R, t = view.T_cam_obj[:3, :3], view.T_cam_obj[:3, 3] + view.T_cam_obj[:3, :3] @ codebook.model.centre
     one = lambda v: np.array([v])  # noqa: E731
-    unused = PoseScores(one(0.0), one(1.0), one(0.0), one(0.0), one(0.0), one(0.1))  # doubt scores the pose itself
+    unused = PoseScores(
+        one(0.0), one(1.0), one(0.0), one(0.0), one(0.0), one(0.1), one(0.0)
+    )  # doubt scores the pose itself
     flip = np.diag([1.0, -1.0, -1.0])  # turned over about the model's x axis, same centre
     assert not doubtful(query, codebook, Refined(0, R, t, unused, True))
     assert doubtful(query, codebook, Refined(0, R @ flip, t, unused, True))
     assert doubtful(query, codebook, Refined(0, R, t + [0, 0, 0.05], unused, True))  # 5 cm too far
     assert doubtful(query, codebook, Refined(0, R, t, unused, False))  # not refined
 
-    def refined(inliers: float, violation: float, was_refined: bool = True) -> Refined:
-        return Refined(
-            0, R, t, PoseScores(one(0.001), one(inliers), one(violation), one(0.1), one(0.0), one(0.1)), was_refined
-        )
+    def refined(inliers: float, violation: float, was_refined: bool = True, scene: float = 0.0) -> Refined:
+        scores = PoseScores(one(0.001), one(inliers), one(violation), one(0.1), one(0.0), one(0.1), one(scene))
+        return Refined(0, R, t, scores, was_refined)
 
     assert explains_more(refined(0.97, 0.0), refined(0.99, 0.05))
+    assert explains_more(refined(0.97, 0.0), refined(0.99, 0.0, scene=0.05))  # scene violations count too
     assert not explains_more(refined(0.90, 0.0), refined(0.95, 0.01))
     assert explains_more(refined(0.5, 0.2), refined(0.99, 0.0, False))  # refined beats unrefined
 
