@@ -147,9 +147,10 @@ class PrepareOnce:
         return bool(getattr(self.method, "uses_frame", False))
 
     def estimate(self, cloud: np.ndarray, frame: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        if frame is not None and self.uses_frame:
-            return self.method.estimate(cloud, frame=frame)  # type: ignore[call-arg]
-        return self.method.estimate(cloud)
+        """``frame``: given by the benchmark only when ``uses_frame``."""
+        if frame is None:
+            return self.method.estimate(cloud)
+        return self.method.estimate(cloud, frame=frame)  # type: ignore[call-arg]
 
     @property
     def last(self) -> object:

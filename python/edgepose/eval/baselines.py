@@ -312,13 +312,12 @@ class EdgePoseMethod:
         self._codebook = edgepose.build_codebook(mesh)  # type: ignore[attr-defined]
 
     def estimate(self, cloud: np.ndarray, frame: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-        """``frame``: the view's (depth (H, W) metres, K), used when ``uses_frame``."""
+        """``frame``: the view's (depth (H, W) metres, K); the benchmark gives
+        it only to a method that ``uses_frame``."""
         if self._codebook is None:
             raise RuntimeError(f"{self.name}: call prepare(mesh) first")
-        options = dict(self.estimate_options)
-        if frame is not None and self.uses_frame:
-            options.update(depth=frame[0], K=frame[1], depth_scale=1.0)
-        pose = edgepose.estimate(cloud, self._codebook, **options)  # type: ignore[attr-defined]
+        scene: dict[str, Any] = {} if frame is None else {"depth": frame[0], "K": frame[1], "depth_scale": 1.0}
+        pose = edgepose.estimate(cloud, self._codebook, **self.estimate_options, **scene)  # type: ignore[attr-defined]
         timings = getattr(pose, "timings", None)
         self.last = LastRun(
             found=True,
