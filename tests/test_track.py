@@ -104,3 +104,32 @@ def test_the_predicted_turn_keeps_the_motions_direction():
         expected = trimesh.transformations.rotation_matrix(0.7 * angle, axis)[:3, :3]
         assert np.allclose(_scaled_turn(R, 0.7), expected, atol=1e-12)
     assert np.array_equal(_scaled_turn(np.eye(3), 0.7), np.eye(3))
+
+
+def test_given_the_depth_frame_tracked_poses_are_checked_against_the_scene(drill):
+    """With each frame's depth image, tracked poses carry the scene term and
+    the frame's confidence model; a pose failing the scene check (here: any,
+    at a limit below 0) starts a fresh estimate, which the frame also reaches."""
+    from edgepose.eval.scenes import render_scene
+    from edgepose.track import TrackSettings
+
+    mesh, codebook = drill
+    T = render_scene(mesh, "visible40", seed=4).T_cam_obj
+    views = [render_scene(mesh, "visible40", seed=4 + 100 * k, T_cam_obj=T) for k in range(4)]
+    tracker = edgepose.Tracker(codebook)
+    poses = [tracker.update(v.cloud, depth=v.depth, K=v.K, depth_scale=1.0) for v in views]
+    assert [p.mode for p in poses] == ["initialised", "tracked", "tracked", "tracked"]
+    for pose in poses:
+        assert add_mm(codebook, pose, T) < 0.1 * 1e3 * codebook.model.diameter
+        assert pose.evidence["scene_violation"] < 0.05
+    tracked = poses[-1]
+    assert tracked.confidence == tracker.encoder.scene_confidence.probability(tracked.evidence)
+    assert tracked.confidence >= edgepose.TRUST_THRESHOLD
+
+    strict = edgepose.Tracker(codebook, track=TrackSettings(max_scene_violation=-1.0))
+    modes = [strict.update(v.cloud, depth=v.depth, K=v.K, depth_scale=1.0).mode for v in views]
+    assert modes == ["initialised"] + ["reinitialised"] * 3
+    blind = [strict.update(v.cloud).mode for v in views]  # no frame: no scene check
+    assert blind == ["tracked"] * 4
+    with pytest.raises(edgepose.InvalidCloudError, match="depth and K go together"):
+        tracker.update(views[0].cloud, depth=views[0].depth)

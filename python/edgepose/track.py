@@ -11,7 +11,10 @@ replaced, in the same call, by a fresh ``estimate``. Each returned
 :class:`edgepose.Pose` says how it was obtained (``Pose.mode``).
 
 Frames are camera-frame clouds in metres, segmented to the object, as for
-``estimate``; poses are ``T_cam_obj``.
+``estimate``; poses are ``T_cam_obj``. Given each frame's depth image too
+(``update(cloud, depth=, K=)``, or ``update_depth``), every pose is also
+checked against the scene around the mask, as ``estimate`` checks it: a
+tracked pose that would hide background the camera saw fails the check.
 """
 
 from __future__ import annotations
@@ -24,13 +27,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edgepose.cloud import DEPTH_SCALE_MM, clean_cloud, cloud_from_depth
+from edgepose.cloud import DEPTH_SCALE_MM, checked_depth, clean_cloud, cloud_from_depth
 from edgepose.codebook import Codebook
 from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
+from edgepose.errors import InvalidCloudError
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
-from edgepose.stages import Query, near_the_cloud, score_poses, subsample
+from edgepose.stages import Query, near_the_cloud, scene_around, score_poses, subsample
 from edgepose.views import rotation_about, rotation_angle
 
 
@@ -54,7 +58,11 @@ class TrackSettings:
     min_inlier_fraction: float = 0.85
     """A tracked pose explaining fewer of the observed points than this fails the check ..."""
     max_free_space_violation: float = 0.1
-    """... as does one contradicting free space on more of its rays than this."""
+    """... as does one contradicting free space on more of its rays than this ..."""
+    max_scene_violation: float = 0.1
+    """... or, given the frame's depth, putting more than this share of its
+    camera-facing points off the mask in front of the measured scene
+    (``estimate`` searches again above the same share)."""
 
     def with_(self, **changes: object) -> TrackSettings:
         return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
@@ -100,17 +108,38 @@ class Tracker:
         with self._lock:
             self._last = self._previous = None
 
-    def update(self, cloud: object) -> Pose:
+    def update(
+        self,
+        cloud: object,
+        *,
+        depth: np.ndarray | None = None,
+        K: object = None,
+        depth_scale: float = DEPTH_SCALE_MM,
+    ) -> Pose:
         """The object's pose in this frame's ``cloud`` ((N, 3) metres, camera
-        frame, segmented to the object)."""
+        frame, segmented to the object). ``depth`` (H, W) and ``K`` (3×3): the
+        whole depth image the cloud was cut from (``depth / depth_scale``
+        metres), when known: poses are then checked against the scene
+        around the object too, as by :func:`edgepose.estimate`."""
+        if (depth is None) != (K is None):
+            raise InvalidCloudError("depth and K go together: give both (the frame the cloud came from) or neither")
+        frame = None if depth is None else (*checked_depth(depth, K, depth_scale), depth_scale)
         with self._lock:
             t0 = time.perf_counter()
             pose = None
             if self._last is not None:
-                pose = self._tracked(cloud, t0)
+                pose = self._tracked(cloud, t0, frame)
             if pose is None:
                 mode = "initialised" if self._last is None else "reinitialised"
-                found = estimate(cloud, self.codebook, encoder=self.encoder, settings=self.settings)
+                found = estimate(
+                    cloud,
+                    self.codebook,
+                    encoder=self.encoder,
+                    settings=self.settings,
+                    depth=depth,
+                    K=K,
+                    depth_scale=depth_scale,
+                )
                 timings = {**found.timings, "total": time.perf_counter() - t0}
                 pose = dataclasses.replace(found, mode=mode, timings=timings)
             # A velocity only between consecutive tracked frames of the same object.
@@ -121,13 +150,15 @@ class Tracker:
     def update_depth(
         self, depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None, depth_scale: float = DEPTH_SCALE_MM
     ) -> Pose:
-        """:meth:`update` on the cloud of a depth image: ``depth / depth_scale``
-        is metres (1000: uint16 millimetres), ``K`` the 3×3 intrinsics, ``mask``
-        the object's pixels (see :func:`edgepose.cloud_from_depth`)."""
-        return self.update(cloud_from_depth(depth, K, mask, depth_scale))
+        """:meth:`update` on the cloud of a depth image, checked against the
+        rest of the image: ``depth / depth_scale`` is metres (1000: uint16
+        millimetres), ``K`` the 3×3 intrinsics, ``mask`` the object's pixels
+        (see :func:`edgepose.cloud_from_depth`)."""
+        return self.update(cloud_from_depth(depth, K, mask, depth_scale), depth=depth, K=K, depth_scale=depth_scale)
 
-    def _tracked(self, cloud: object, t0: float) -> Pose | None:
-        """The last pose refined onto ``cloud``, or None when it fails the check.
+    def _tracked(self, cloud: object, t0: float, frame: tuple | None) -> Pose | None:
+        """The last pose refined onto ``cloud``, or None when it fails the check
+        (``frame``: the checked depth image, K and depth scale, or None).
         Raises InvalidCloudError for a cloud that cannot be the object."""
         last, codebook, track = self._last, self.codebook, self.track
         assert last is not None
@@ -144,7 +175,8 @@ class Tracker:
             t = t + track.velocity * (t - (prev.t + prev.R @ model.centre))
         icp = codebook.index.refine(points, R[None], t[None], track.icp_iterations, track.icp_max_distance * d)
         R, t = icp.rotations[0], icp.translations[0]
-        query = Query(seen, _spacing(seen), seen.mean(axis=0, dtype=np.float64), np.eye(3), seen[:0], seen[:0])
+        scene = None if frame is None else scene_around(*frame, seen, d)
+        query = Query(seen, _spacing(seen), seen.mean(axis=0, dtype=np.float64), np.eye(3), seen[:0], seen[:0], scene)
         scores = score_poses(query, codebook, points, R[None], t[None], track.inlier_distance * d, 0.0, self.settings)
         tight = score_poses(
             query, codebook, points, R[None], t[None], self.settings.hypothesis_inlier_distance * d, 0.0, self.settings
@@ -154,6 +186,7 @@ class Tracker:
             and icp.inliers[0] >= self.settings.min_icp_inliers
             and scores.inlier_fraction[0] >= track.min_inlier_fraction
             and scores.free_space_violation[0] <= track.max_free_space_violation
+            and (scene is None or scores.scene_violation[0] <= track.max_scene_violation)
             and near_the_cloud(query, codebook, t[None], self.settings)[0]
         ):
             return None
@@ -174,8 +207,10 @@ class Tracker:
             translation_constraint=tight.translation_constraint[0],
             flip_margin=last.evidence.get("flip_margin", 1.0),
             rmse_ratio=last.evidence.get("rmse_ratio", 0.0),
+            scene_violation=scores.scene_violation[0],
         )
-        confidence = self.encoder.confidence.probability(evidence) if self.encoder.confidence else float("nan")
+        judge = self.encoder.confidence if scene is None else self.encoder.scene_confidence
+        confidence = judge.probability(evidence) if judge else float("nan")
         elapsed = time.perf_counter() - t0
         return dataclasses.replace(
             last,
