@@ -203,6 +203,9 @@ class ModelIndex:
         rival_distance: float,
         rival_points: int,
         symmetric: bool,
+        settled: int,
+        settle_iterations: int,
+        settle_distance: float,
     ) -> float: ...
     def pair_poses(
         self, cloud: npt.NDArray[np.float32], scene_points: int, reference_stride: int, poses: int

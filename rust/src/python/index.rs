@@ -262,7 +262,9 @@ impl PyModelIndex {
     /// model → camera) whose inlier fraction minus free-space violation on
     /// the `observed` points is `own_net`: see the core's `flips` module.
     /// `keypoints`, `observed` and `free_space` are the query's; `turn_rotations`
-    /// (K, 3, 3) and `turn_translations` (K, 3) the model's turns tried (model frame).
+    /// (K, 3, 3) and `turn_translations` (K, 3) the model's turns tried (model frame);
+    /// the `settled` best screened rivals are settled by `settle_iterations`
+    /// of ICP pairing points within `settle_distance` metres.
     #[allow(clippy::too_many_arguments)]
     fn flip_margin<'py>(
         &self,
@@ -283,6 +285,9 @@ impl PyModelIndex {
         rival_distance: f64,
         rival_points: usize,
         symmetric: bool,
+        settled: usize,
+        settle_iterations: usize,
+        settle_distance: f64,
     ) -> PyResult<f64> {
         guarded(|| {
             let k = cloud_triples(&keypoints, "keypoints")?;
@@ -321,6 +326,9 @@ impl PyModelIndex {
                 rival_distance,
                 rival_points,
                 symmetric,
+                settled,
+                settle_iterations,
+                settle_distance,
             };
             Ok(py
                 .detach(|| flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings)))
