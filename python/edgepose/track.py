@@ -156,7 +156,7 @@ class Tracker:
         (see :func:`edgepose.cloud_from_depth`)."""
         return self.update(cloud_from_depth(depth, K, mask, depth_scale), depth=depth, K=K, depth_scale=depth_scale)
 
-    def _tracked(self, cloud: object, t0: float, frame: tuple | None) -> Pose | None:
+    def _tracked(self, cloud: object, t0: float, frame: tuple[np.ndarray, np.ndarray, float] | None) -> Pose | None:
         """The last pose refined onto ``cloud``, or None when it fails the check
         (``frame``: the checked depth image, K and depth scale, or None).
         Raises InvalidCloudError for a cloud that cannot be the object."""
