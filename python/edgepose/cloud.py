@@ -209,6 +209,18 @@ def checked_depth(depth: object, K: object, depth_scale: float) -> tuple[np.ndar
     return np.ascontiguousarray(depth), K
 
 
+def checked_frame(
+    depth: object | None, K: object | None, depth_scale: float
+) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The depth frame a cloud was cut from, as ``estimate`` and the
+    ``Tracker`` take it: ``(depth, K, depth_scale)`` checked by
+    :func:`checked_depth`, or None when neither ``depth`` nor ``K`` is
+    given; InvalidCloudError when only one is."""
+    if (depth is None) != (K is None):
+        raise InvalidCloudError("depth and K go together: give both (the frame the cloud came from) or neither")
+    return None if depth is None else (*checked_depth(depth, K, depth_scale), depth_scale)
+
+
 def checked_mask(mask: object, shape: tuple[int, ...]) -> np.ndarray:
     """``mask`` as a bool image of ``shape``; InvalidCloudError if its shape differs."""
     mask = np.asarray(mask, dtype=bool)

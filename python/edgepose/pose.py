@@ -18,11 +18,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from edgepose.cloud import DEPTH_SCALE_MM, checked_depth
+from edgepose.cloud import DEPTH_SCALE_MM, checked_frame
 from edgepose.codebook import Codebook, CodebookError
 from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
-from edgepose.errors import InvalidCloudError
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
 from edgepose.stages import (
     PoseScores,
@@ -152,9 +151,7 @@ def estimate(
     encoder = encoder or default_encoder()
     check_estimate_inputs(codebook, encoder, settings)
     laps = Laps()
-    if (depth is None) != (K is None):
-        raise InvalidCloudError("depth and K go together: give both (the frame the cloud came from) or neither")
-    frame = None if depth is None else (*checked_depth(depth, K, depth_scale), depth_scale)
+    frame = checked_frame(depth, K, depth_scale)
     query = prepare_query(cloud, codebook, settings, frame)
     laps("prepare_query")
     return pose_from_query(query, codebook, encoder, refine, settings, laps)

@@ -27,11 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edgepose.cloud import DEPTH_SCALE_MM, checked_depth, clean_cloud, cloud_from_depth
+from edgepose.cloud import DEPTH_SCALE_MM, checked_frame, clean_cloud, cloud_from_depth
 from edgepose.codebook import Codebook
 from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
-from edgepose.errors import InvalidCloudError
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages import Query, near_the_cloud, scene_around, score_poses, subsample
@@ -121,9 +120,7 @@ class Tracker:
         whole depth image the cloud was cut from (``depth / depth_scale``
         metres), when known: poses are then checked against the scene
         around the object too, as by :func:`edgepose.estimate`."""
-        if (depth is None) != (K is None):
-            raise InvalidCloudError("depth and K go together: give both (the frame the cloud came from) or neither")
-        frame = None if depth is None else (*checked_depth(depth, K, depth_scale), depth_scale)
+        frame = checked_frame(depth, K, depth_scale)
         with self._lock:
             t0 = time.perf_counter()
             pose = None
