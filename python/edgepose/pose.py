@@ -24,6 +24,7 @@ from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
 from edgepose.stages import (
+    FlipMargin,
     PoseScores,
     Query,
     Refined,
@@ -35,6 +36,7 @@ from edgepose.stages import (
     refine_hypotheses,
     retrieve,
     score_poses,
+    turned_pose,
 )
 from edgepose.symmetry import NO_SYMMETRY, Symmetry
 
@@ -66,7 +68,9 @@ class Pose:
     """Seconds per stage, named as the stage functions: prepare_query, retrieve,
     candidate_poses, score_poses, refine_hypotheses (pair_poses when the
     second search ran), then confidence (the
-    evidence and its probability), and the total."""
+    evidence and its probability), turned_pose (only when the flip margin
+    was low enough to try the pose's best turned rival: that and, if it
+    replaced the pose, its confidence), and the total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
     points near the model)."""
@@ -240,16 +244,18 @@ def pose_from_query(
     observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
 
     def judged(
-        found: Candidates, result: Refined, loose: PoseScores, searches: int, flips: float | None = None
-    ) -> tuple[dict, float]:
-        """The evidence and confidence (NaN without a confidence model) of
-        ``result``, a search's pose from the candidates ``found``; ``flips``:
-        its flip margin when already known (a second search kept the first pose)."""
+        found: Candidates, result: Refined, loose: PoseScores, searches: int, flips: FlipMargin | None = None
+    ) -> tuple[dict, float, FlipMargin]:
+        """The evidence, confidence (NaN without a confidence model) and flip
+        margin of ``result``, a search's pose from the candidates ``found``;
+        ``flips``: that margin when already known (a second search kept the first pose)."""
         tight = (
             result.scores
             if result.refined
             else scores_at(query, codebook, result, settings.hypothesis_inlier_distance, settings)
         )
+        if flips is None:
+            flips = flip_margin(query, codebook, result.R, result.t, tight, settings)
         evidence = evidence_of(
             inlier_fraction=tight.inlier_fraction[0],
             loose_inlier_fraction=loose.inlier_fraction[0],
@@ -262,12 +268,12 @@ def pose_from_query(
             off_silhouette=loose.off_silhouette[0],
             observed_extent=observed_extent,
             translation_constraint=tight.translation_constraint[0],
-            flip_margin=flip_margin(query, codebook, result.R, result.t, tight, settings) if flips is None else flips,
+            flip_margin=flips.margin,
             rmse_ratio=result.rmse_ratio,
             scene_violation=loose.scene_violation[0],
         )
         model = encoder.confidence if query.scene is None else encoder.scene_confidence
-        return evidence, model.probability(evidence) if model else float("nan")
+        return evidence, model.probability(evidence) if model else float("nan"), flips
 
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
@@ -278,8 +284,9 @@ def pose_from_query(
     retry = may_retry and doubtful(query, codebook, result, settings, loose)
     laps("refine_hypotheses")
     evidence: dict[str, float] | None = None
+    flips: FlipMargin | None = None
     if not retry:
-        evidence, confidence = judged(found, result, loose, searches)
+        evidence, confidence, flips = judged(found, result, loose, searches)
         laps("confidence")
         retry = may_retry and confidence < settings.retry_below_confidence
     if retry:
@@ -292,13 +299,20 @@ def pose_from_query(
         )
         searches = 2
         # The first pose's flip margin, if it was judged, unless the wider search beats it.
-        flips = evidence["flip_margin"] if evidence else None
         if explains_more(wider, result):
             result, loose, flips = wider, loose_scores(query, codebook, wider, settings), None
         laps("refine_hypotheses")
-        evidence, confidence = judged(found, result, loose, searches, flips)
+        evidence, confidence, flips = judged(found, result, loose, searches, flips)
         laps("confidence")
-    assert evidence is not None  # judged once or twice above
+    assert evidence is not None and flips is not None  # judged once or twice above
+    if flips.margin < settings.turn_check_below:
+        # The view may show the object turned onto itself: its best turned
+        # rival, refined, replaces the pose if it explains the view better.
+        turned = turned_pose(query, codebook, result, flips, settings)
+        if turned is not None:
+            result, loose = turned, loose_scores(query, codebook, turned, settings)
+            evidence, confidence, flips = judged(found, result, loose, searches)
+        laps("turned_pose")
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model

@@ -249,9 +249,20 @@ def nearest_views(codebook: Codebook, rotations: np.ndarray, translations: np.nd
     return np.argmax(towards_camera @ codebook.viewpoints.directions.T, axis=1).astype(np.intp)
 
 
+class FlipMargin(NamedTuple):
+    """:func:`flip_margin`'s outcome."""
+
+    margin: float
+    """How much better the pose explains the view than its best turned rival; 1 when there is none."""
+    rotations: np.ndarray
+    """(R, 3, 3) that rival (model frame → camera), R = 1, or none (R = 0) ..."""
+    translations: np.ndarray
+    """(R, 3) ... metres."""
+
+
 def flip_margin(
     query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, scores: PoseScores, settings: EstimateSettings
-) -> float:
+) -> FlipMargin:
     """How much better pose ``(R, t)`` (model frame → camera, metres), with
     its ``scores`` on the hypotheses' observed points, explains the view
     than itself turned by each of the codebook's doubtful turns (half turns
@@ -268,7 +279,7 @@ def flip_margin(
     # Each turned pose is moved (not turned) so the query's keypoints land on
     # the model, as the candidates are (~0.05 ms); only the best few are
     # then settled by ICP (settling all of them: ~3× the cost).
-    return codebook.index.flip_margin(
+    margin, rotations, translations = codebook.index.flip_margin(
         query.keypoints,
         query.sample(settings.hypothesis_points, settings.subsample_seed),
         query.free_space,
@@ -289,6 +300,47 @@ def flip_margin(
         FLIP_SETTLE_ITERATIONS,
         settings.icp_max_distance * d,
     )
+    return FlipMargin(margin, rotations, translations)
+
+
+def turned_pose(
+    query: Query, codebook: Codebook, result: Refined, flips: FlipMargin, settings: EstimateSettings = DEFAULT_SETTINGS
+) -> Refined | None:
+    """``result``'s best turned rival (``flips``), refined as a hypothesis
+    is (coarse ICP, then the polish), when it explains more of the view
+    (inlier fraction minus violations) by ``settings.turn_switch_gain``;
+    None otherwise, and for a pose ICP did not refine. Its ``margin`` is
+    that gain over ``result``, its ``rmse_ratio`` the search's.
+    :func:`edgepose.estimate` asks when the flip margin is below
+    ``settings.turn_check_below``."""
+    if not result.refined or len(flips.rotations) == 0:
+        return None
+    d = codebook.model.diameter
+    coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
+    max_distance = settings.icp_max_distance * d
+    icp = codebook.index.refine(
+        coarse, flips.rotations, flips.translations, settings.hypothesis_iterations, max_distance
+    )
+    if settings.icp_iterations > 0 and icp.inliers[0] >= settings.min_icp_inliers and np.isfinite(icp.rmse[0]):
+        icp = codebook.index.refine(
+            query.sample(settings.icp_points, settings.subsample_seed + 1),
+            icp.rotations,
+            icp.translations,
+            settings.icp_iterations,
+            max_distance,
+        )
+    R, t = icp.rotations, icp.translations
+    if not (
+        icp.inliers[0] >= settings.min_icp_inliers
+        and np.isfinite(icp.rmse[0])
+        and near_the_cloud(query, codebook, t, settings)[0]
+    ):
+        return None
+    scores = score_poses(query, codebook, coarse, R, t, settings.hypothesis_inlier_distance * d, 0.0, settings)
+    gain = float(scores.net[0] - result.scores.net[0])
+    if gain <= settings.turn_switch_gain:
+        return None
+    return result._replace(R=R[0], t=t[0], scores=scores, refined=True, margin=gain)
 
 
 def score_poses(

@@ -75,6 +75,15 @@ pub struct FlipSettings {
     pub settle_distance: f64,
 }
 
+/// What [`flip_margin`] finds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FlipMargin {
+    /// The pose's net minus its best rival's (1 when there is none).
+    pub margin: f64,
+    /// That rival: the pose turned, moved onto the view and settled.
+    pub rival: Option<Pose>,
+}
+
 /// How much better `pose` explains the view than itself turned by each of
 /// `turns` (rigid turns of the model, model frame: half turns about its
 /// principal axes, its near turns), each turned pose moved (not turned) so
@@ -82,8 +91,8 @@ pub struct FlipSettings {
 /// few that screen best settled by a short ICP: `own_net` (the pose's
 /// inlier fraction minus its free-space violation on the `observed` points
 /// and the `grid` of the whole cloud) minus the best turned pose's that is
-/// a different pose. 1 when none is (every turn is a symmetry, or there
-/// are none).
+/// a different pose, and that best rival (settled). 1 and no rival when
+/// none is (every turn is a symmetry, or there are none).
 #[allow(clippy::too_many_arguments)]
 pub fn flip_margin(
     index: &ModelIndex,
@@ -94,7 +103,7 @@ pub fn flip_margin(
     own_net: f64,
     turns: &[Pose],
     settings: &FlipSettings,
-) -> f64 {
+) -> FlipMargin {
     let turned: Vec<Pose> = turns
         .iter()
         .map(|turn| Pose {
@@ -123,7 +132,10 @@ pub fn flip_margin(
         .map(|(turned, _)| turned)
         .collect();
     if rivals.is_empty() {
-        return 1.0;
+        return FlipMargin {
+            margin: 1.0,
+            rival: None,
+        };
     }
     // The rivals worth settling are picked on a quarter of the points and
     // model points (each look-up is a likely cache miss).
@@ -182,11 +194,16 @@ pub fn flip_margin(
     } else {
         starts
     };
-    let best_rival = score_poses(index, observed, grid, &settled, &settings.score)
+    let nets = score_poses(index, observed, grid, &settled, &settings.score);
+    let (best, best_net) = nets
         .iter()
         .map(PoseScore::net)
-        .fold(f64::NEG_INFINITY, f64::max);
-    own_net - best_rival
+        .enumerate()
+        .fold((0, f64::NEG_INFINITY), |a, b| if b.1 > a.1 { b } else { a });
+    FlipMargin {
+        margin: own_net - best_net,
+        rival: Some(settled[best]),
+    }
 }
 
 #[cfg(test)]
@@ -306,6 +323,7 @@ mod tests {
                 &half_turns,
                 settings,
             )
+            .margin
         };
         let margin = margin_of(&truth, &settings);
         assert!(margin > 0.05, "true pose margin {margin}");
@@ -331,7 +349,8 @@ mod tests {
             &[],
             &settings,
         );
-        assert_eq!(no_turns, 1.0);
+        assert_eq!(no_turns.margin, 1.0);
+        assert!(no_turns.rival.is_none());
 
         // A turn a few degrees off (a near turn is never exact) leaves the
         // flipped pose's rival, the truth, tilted: unsettled it explains
@@ -356,8 +375,15 @@ mod tests {
         let unsettled = flipped_margin(&FlipSettings {
             settle_iterations: 0,
             ..settings
-        });
-        let settled = flipped_margin(&settings);
+        })
+        .margin;
+        let found = flipped_margin(&settings);
+        let settled = found.margin;
+        // The settled rival is the truth, nearly: what a search that took
+        // the flipped pose should switch to.
+        let rival = found.rival.expect("a rival");
+        let off = pose_distances(&index, &[rival], &truth, false, 64)[0];
+        assert!(off < 0.004, "settled rival {off} m from the truth");
         assert!(
             settled < 0.0 && unsettled > 0.0,
             "settled {settled}, unsettled {unsettled}"

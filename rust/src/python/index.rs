@@ -19,6 +19,10 @@ use crate::refine::IcpResult;
 use crate::scoring::{align_translations, score_poses, DepthGrid, SceneDepth, ScoreSettings};
 use crate::{search, Point3};
 
+/// What `flip_margin` hands Python: the margin and its best rival, if any
+/// (rotations (R, 3, 3), translations (R, 3), R ≤ 1).
+type FlipMarginResult<'py> = (f64, Bound<'py, PyArray3<f64>>, Bound<'py, PyArray2<f64>>);
+
 /// Borrows an observed cloud (N, 3) float32, camera frame; a bad shape is an
 /// `InvalidCloudError`.
 fn cloud_triples<'a>(array: &'a PyReadonlyArray2<'_, f32>, name: &str) -> PyResult<&'a [Point3]> {
@@ -264,7 +268,9 @@ impl PyModelIndex {
     /// `keypoints`, `observed` and `free_space` are the query's; `turn_rotations`
     /// (K, 3, 3) and `turn_translations` (K, 3) the model's turns tried (model frame);
     /// the `settled` best screened rivals are settled by `settle_iterations`
-    /// of ICP pairing points within `settle_distance` metres.
+    /// of ICP pairing points within `settle_distance` metres. Returns
+    /// `(margin, rotations (R, 3, 3), translations (R, 3))`: the best rival
+    /// (model → camera; R = 1), or none (R = 0) when no turned pose is one.
     #[allow(clippy::too_many_arguments)]
     fn flip_margin<'py>(
         &self,
@@ -288,7 +294,7 @@ impl PyModelIndex {
         settled: usize,
         settle_iterations: usize,
         settle_distance: f64,
-    ) -> PyResult<f64> {
+    ) -> PyResult<FlipMarginResult<'py>> {
         guarded(|| {
             let k = cloud_triples(&keypoints, "keypoints")?;
             let o = cloud_triples(&observed, "observed")?;
@@ -330,8 +336,14 @@ impl PyModelIndex {
                 settle_iterations,
                 settle_distance,
             };
-            Ok(py
-                .detach(|| flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings)))
+            let found = py
+                .detach(|| flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings));
+            let rivals: Vec<Pose> = found.rival.into_iter().collect();
+            Ok((
+                found.margin,
+                rotations_array(py, rivals.iter().map(|p| &p.rotation)),
+                translations_array(py, rivals.iter().map(|p| &p.translation)),
+            ))
         })
     }
 
