@@ -317,24 +317,13 @@ def turned_pose(
         return None
     d = codebook.model.diameter
     coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
-    max_distance = settings.icp_max_distance * d
     icp = codebook.index.refine(
-        coarse, flips.rotations, flips.translations, settings.hypothesis_iterations, max_distance
+        coarse, flips.rotations, flips.translations, settings.hypothesis_iterations, settings.icp_max_distance * d
     )
     if settings.icp_iterations > 0 and icp.inliers[0] >= settings.min_icp_inliers and np.isfinite(icp.rmse[0]):
-        icp = codebook.index.refine(
-            query.sample(settings.icp_points, settings.subsample_seed + 1),
-            icp.rotations,
-            icp.translations,
-            settings.icp_iterations,
-            max_distance,
-        )
+        icp = polish(query, codebook, icp.rotations, icp.translations, settings)
     R, t = icp.rotations, icp.translations
-    if not (
-        icp.inliers[0] >= settings.min_icp_inliers
-        and np.isfinite(icp.rmse[0])
-        and near_the_cloud(query, codebook, t, settings)[0]
-    ):
+    if not usable_icp(query, codebook, icp.inliers, icp.rmse, t, settings)[0]:
         return None
     scores = score_poses(query, codebook, coarse, R, t, settings.hypothesis_inlier_distance * d, 0.0, settings)
     gain = float(scores.net[0] - result.scores.net[0])
@@ -424,9 +413,7 @@ def refine_hypotheses(
         for i, s in enumerate(new):  # ICP runs each start on its own: one at a time is the same
             cache["coarse", s] = (icp.rotations[i], icp.translations[i], icp.inliers[i], icp.rmse[i])
     hyp_R, hyp_t, inliers, rmse = (np.array(x) for x in zip(*(cache["coarse", int(s)] for s in starts)))
-    usable = (
-        np.isfinite(rmse) & (inliers >= settings.min_icp_inliers) & near_the_cloud(query, codebook, hyp_t, settings)
-    )
+    usable = usable_icp(query, codebook, inliers, rmse, hyp_t, settings)
     if not usable.any():
         return None
     inlier_distance = settings.hypothesis_inlier_distance * d
@@ -451,20 +438,12 @@ def refine_hypotheses(
     )
     if settings.icp_iterations > 0:
         if ("fine", best.candidate) not in cache:
-            cache["fine", best.candidate] = codebook.index.refine(
-                query.sample(settings.icp_points, settings.subsample_seed + 1),
-                hyp_R[pick : pick + 1],
-                hyp_t[pick : pick + 1],
-                settings.icp_iterations,
-                max_distance,
+            cache["fine", best.candidate] = polish(
+                query, codebook, hyp_R[pick : pick + 1], hyp_t[pick : pick + 1], settings
             )
         fine_icp = cache["fine", best.candidate]
         fine_R, fine_t = fine_icp.rotations, fine_icp.translations
-        if (
-            fine_icp.inliers[0] >= settings.min_icp_inliers
-            and np.isfinite(fine_icp.rmse[0])
-            and near_the_cloud(query, codebook, fine_t, settings)[0]
-        ):
+        if usable_icp(query, codebook, fine_icp.inliers, fine_icp.rmse, fine_t, settings)[0]:
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
             best = best._replace(R=fine_R[0], t=fine_t[0], scores=fine)
     return best
@@ -488,6 +467,38 @@ FLIP_ALIGN_ITERATIONS = 1
 #: for ~0.2 ms an estimate (``export/README.md``).
 FLIP_SETTLED_RIVALS = 2
 FLIP_SETTLE_ITERATIONS = 2
+
+
+def polish(
+    query: Query, codebook: Codebook, rotations: np.ndarray, translations: np.ndarray, settings: EstimateSettings
+) -> _core.IcpResults:
+    """The final ICP polish of poses (model frame → camera): ``settings.icp_iterations``
+    on ``settings.icp_points`` of the query's points."""
+    return codebook.index.refine(
+        query.sample(settings.icp_points, settings.subsample_seed + 1),
+        rotations,
+        translations,
+        settings.icp_iterations,
+        settings.icp_max_distance * codebook.model.diameter,
+    )
+
+
+def usable_icp(
+    query: Query,
+    codebook: Codebook,
+    inliers: np.ndarray,
+    rmse: np.ndarray,
+    translations: np.ndarray,
+    settings: EstimateSettings,
+) -> np.ndarray:
+    """(H,) bool: which ICP results (their inlier counts, RMSEs and
+    translations, metres) to use: enough inliers, a finite RMSE, the
+    model's centre still near the cloud (:func:`near_the_cloud`)."""
+    return (
+        np.isfinite(rmse)
+        & (inliers >= settings.min_icp_inliers)
+        & near_the_cloud(query, codebook, translations, settings)
+    )
 
 
 def pose_distances(codebook: Codebook, rotations: np.ndarray, translations: np.ndarray, ref: int) -> np.ndarray:
