@@ -21,7 +21,8 @@ data. With ``--frame`` each view's whole depth frame is given too
 scene terms (:data:`edgepose.confidence.SCENE_FEATURES`), and the model is
 written as the manifest's ``confidence.with_scene``, the one
 ``Pose.confidence`` uses for such poses. A logistic regression (L2, Newton) is fitted on the
-standardised, transformed evidence. Reported: AUROC, expected calibration
+standardised, transformed evidence, each term entering as a piecewise-linear
+curve (knots at :data:`KNOT_QUANTILES` of it). Reported: AUROC, expected calibration
 error and the rates at the 0.5 threshold, by 4-fold cross-validation grouped
 by object (no object is in its own fold's fit).
 """
@@ -47,8 +48,13 @@ SEED_BASE = 555_000
 #: The level of the mislabelled views: another shape's cloud with the object's codebook.
 OTHER_OBJECT = "other_object"
 CACHE = Path(__file__).resolve().parent / ".cache"
-#: L2 penalty of the logistic regression (on standardised features).
+#: L2 penalty of the logistic regression (on standardised inputs).
 L2 = 1e-2
+#: Where each term's knots lie: these quantiles of it over the fitting data.
+#: Chosen by 4-fold cross-validation on the training evidence (stressed AUROC,
+#: clouds / frame): linear 0.954 / 0.963, knots at 1/6..5/6 0.959 / 0.962,
+#: at 0.1, 0.3, 0.5, 0.7, 0.9 0.961 / 0.970 (a gradient-boosted tree ensemble: 0.967 / 0.974).
+KNOT_QUANTILES = (0.1, 0.3, 0.5, 0.7, 0.9)
 
 
 def training_objects(procedural: int, blob_every: int) -> list[tuple[str, object]]:
@@ -143,14 +149,23 @@ def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = L2, iterations: int =
 
 
 def fit_model(evidence: np.ndarray, correct: np.ndarray, names: tuple[str, ...] = CLOUD_FEATURES):
-    """A :class:`edgepose.confidence.ConfidenceModel` fitted on rows of evidence (columns: ``names``)."""
+    """A :class:`edgepose.confidence.ConfidenceModel` fitted on rows of evidence
+    (columns: ``names``), with knots at :data:`KNOT_QUANTILES` of each term
+    that takes more than 3 values (those strictly inside its range)."""
     from edgepose.confidence import ConfidenceModel, feature_vector
 
-    X = np.stack([feature_vector(dict(zip(names, row)), names) for row in evidence])
+    terms = np.stack([feature_vector(dict(zip(names, row)), names) for row in evidence])
+    knots = tuple(
+        tuple(k for k in np.unique(np.quantile(column, KNOT_QUANTILES)).tolist() if column.min() < k < column.max())
+        if len(np.unique(column)) > 3
+        else ()
+        for column in terms.T
+    )
+    X = ConfidenceModel.inputs(terms, knots)
     mean, scale = X.mean(axis=0), X.std(axis=0)
     scale[scale == 0] = 1.0
     weights, bias = fit_logistic((X - mean) / scale, correct.astype(float))
-    return ConfidenceModel(names, mean, scale, weights, bias)
+    return ConfidenceModel(names, knots, mean, scale, weights, bias)
 
 
 def report(name: str, p: np.ndarray, y: np.ndarray) -> dict:

@@ -10,7 +10,7 @@ import edgepose
 import numpy as np
 import pytest
 import trimesh
-from edgepose.confidence import FEATURES, TRUST_THRESHOLD, ConfidenceModel
+from edgepose.confidence import FEATURES, TRUST_THRESHOLD, ConfidenceModel, feature_vector
 from edgepose.encoder import MODELS_DIR, Encoder
 from edgepose.eval import render_view
 from edgepose.eval.metrics import acceptance, auroc, calibration
@@ -83,9 +83,41 @@ def test_a_malformed_confidence_model_is_a_model_files_error(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(edgepose.ModelFilesError, match="one per term"):
         Encoder(tmp_path)
+    manifest = json.loads((MODELS_DIR / "manifest.json").read_text())
+    manifest["confidence"]["knots"][0] = [0.5, 0.1]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(edgepose.ModelFilesError, match="ascending"):
+        Encoder(tmp_path)
     del manifest["confidence"]
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     assert Encoder(tmp_path).confidence is None  # networks without one: confidence is NaN
+
+
+def test_each_term_is_a_piecewise_linear_curve_through_its_knots():
+    """The model is logistic in each term plus max(0, term - knot) at its
+    knots; it survives the manifest, a manifest without knots is linear in
+    every term, and the fast per-pose sum equals the matrix form."""
+
+    def logit(model: ConfidenceModel, score: float) -> float:
+        p = model.probability({"score": score})
+        return float(np.log(p / (1 - p)))
+
+    one = np.ones(2)
+    hinged = ConfidenceModel(("score",), ((0.5,),), 0 * one, one, np.array([1.0, 2.0]), 0.0)
+    hinged = ConfidenceModel.from_manifest(hinged.to_manifest())
+    assert hinged.to_manifest()["inputs"] == ["score:value", "score:value>0.5"]
+    assert [logit(hinged, x) for x in (0.2, 0.4, 0.8)] == pytest.approx([0.2, 0.4, 0.8 + 2 * 0.3])
+    linear = {k: v[:1] if k in ("mean", "scale", "weights") else v for k, v in hinged.to_manifest().items()}
+    del linear["knots"]
+    assert logit(ConfidenceModel.from_manifest(linear), 0.8) == pytest.approx(0.8)
+
+    shipped = ConfidenceModel.from_manifest(json.loads((MODELS_DIR / "manifest.json").read_text())["confidence"])
+    assert any(shipped.knots)
+    rng = np.random.default_rng(0)
+    evidence = [{n: float(rng.uniform(0.0, 1.0)) for n in shipped.features} for _ in range(50)]
+    terms = np.array([feature_vector(e, shipped.features) for e in evidence])
+    z = (ConfidenceModel.inputs(terms, shipped.knots) - shipped.mean) / shipped.scale @ shipped.weights + shipped.bias
+    assert [shipped.probability(e) for e in evidence] == pytest.approx(1 / (1 + np.exp(-z)), abs=1e-12)
 
 
 def test_auroc_counts_ordered_pairs_and_ties():

@@ -112,43 +112,71 @@ def term_names(names: tuple[str, ...]) -> list[str]:
     return [f"{n}:{term.__name__.strip('_')}" for n in names for term in TERMS[n]]
 
 
+def hinge_names(names: tuple[str, ...], knots: tuple[tuple[float, ...], ...]) -> list[str]:
+    """The model's inputs: each term (:func:`term_names`), then its hinges
+    ``term>knot`` (max(0, term − knot)), in :meth:`ConfidenceModel.inputs`' order."""
+    return [
+        name
+        for term, term_knots in zip(term_names(names), knots)
+        for name in (term, *(f"{term}>{k:.6g}" for k in term_knots))
+    ]
+
+
 @dataclass(frozen=True)
 class ConfidenceModel:
-    """Logistic regression over transformed, standardised evidence."""
+    """Logistic regression over transformed, standardised evidence, each term
+    a piecewise-linear curve: the term itself plus max(0, term − knot) at its
+    knots (none: linear in it)."""
 
     features: tuple[str, ...]
+    knots: tuple[tuple[float, ...], ...]
+    """One tuple per term (:func:`feature_vector`), ascending."""
     mean: np.ndarray
-    """(T,) of each term (:func:`feature_vector`) over the fitting data."""
+    """(I,) of each input (:func:`hinge_names`) over the fitting data."""
     scale: np.ndarray
-    """(T,) their standard deviations."""
+    """(I,) their standard deviations."""
     weights: np.ndarray
-    """(T,) on the standardised terms."""
+    """(I,) on the standardised inputs."""
     bias: float
-    _linear: tuple[tuple[tuple[str, Callable[[float], float], float], ...], float] = field(
-        init=False, repr=False, compare=False
+    _raw: tuple[tuple[tuple[str, Callable[[float], float], float, tuple[tuple[float, float], ...]], ...], float] = (
+        field(init=False, repr=False, compare=False)
     )
-    """The same model on the raw terms: (feature, transform, weight) of each
-    term and the intercept, as Python floats (one estimate's ~20 terms cost
-    ~60 µs through numpy in situ, a few in plain Python)."""
+    """The same model on the unstandardised terms: (feature, transform,
+    weight, ((knot, weight), ...)) of each term and the intercept, as Python
+    floats (~20 µs a pose in plain Python; through numpy in situ, ~60 µs)."""
 
     def __post_init__(self) -> None:
-        coefficients = self.weights / self.scale
+        coefficients = iter((self.weights / self.scale).tolist())
         terms = tuple(
-            (name, term, float(c))
-            for (name, term), c in zip(((n, t) for n in self.features for t in TERMS[n]), coefficients)
+            (name, term, next(coefficients), tuple((k, next(coefficients)) for k in term_knots))
+            for (name, term), term_knots in zip(((n, t) for n in self.features for t in TERMS[n]), self.knots)
         )
-        object.__setattr__(self, "_linear", (terms, float(self.bias - self.mean @ coefficients)))
+        intercept = float(self.bias - self.mean @ (self.weights / self.scale))
+        object.__setattr__(self, "_raw", (terms, intercept))
+
+    @staticmethod
+    def inputs(terms: np.ndarray, knots: tuple[tuple[float, ...], ...]) -> np.ndarray:
+        """(..., I) inputs from (..., T) terms: each term, then its hinges."""
+        columns = []
+        for j, term_knots in enumerate(knots):
+            columns.append(terms[..., j])
+            columns.extend(np.maximum(terms[..., j] - k, 0.0) for k in term_knots)
+        return np.stack(columns, axis=-1)
 
     def probability(self, evidence: dict[str, float]) -> float:
         """P(correct | evidence), 0–1."""
-        terms, intercept = self._linear
-        z = intercept + sum(c * term(evidence[name]) for name, term, c in terms)
+        terms, z = self._raw
+        for name, term, c, hinges in terms:
+            x = term(evidence[name])
+            z += c * x + sum(ck * (x - k) for k, ck in hinges if x > k)
         return 1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0)))
 
     def to_manifest(self) -> dict[str, Any]:
         return {
             "features": {n: FEATURES[n] for n in self.features},
             "terms": term_names(self.features),
+            "knots": [list(k) for k in self.knots],
+            "inputs": hinge_names(self.features, self.knots),
             "mean": self.mean.tolist(),
             "scale": self.scale.tolist(),
             "weights": self.weights.tolist(),
@@ -157,19 +185,28 @@ class ConfidenceModel:
 
     @classmethod
     def from_manifest(cls, info: dict[str, Any]) -> ConfidenceModel:
-        """From the manifest's ``confidence`` entry; ``ValueError`` naming what is wrong."""
+        """From the manifest's ``confidence`` entry (without ``knots``: linear
+        in every term); ``ValueError`` naming what is wrong."""
         names = tuple(info["features"])
         unknown = [n for n in names if n not in FEATURES]
         if unknown:
             raise ValueError(f"confidence model uses features this edgepose does not compute: {unknown}")
+        terms = len(term_names(names))
+        knots = tuple(tuple(float(k) for k in term_knots) for term_knots in info.get("knots", [[]] * terms))
+        if len(knots) != terms or any(list(k) != sorted(set(k)) for k in knots):
+            raise ValueError(f"confidence model: knots must be {terms} ascending lists (one per term)")
         mean, scale, weights = (np.asarray(info[k], dtype=np.float64) for k in ("mean", "scale", "weights"))
         bias = float(info["bias"])
-        terms = len(term_names(names))
-        if not all(a.shape == (terms,) for a in (mean, scale, weights)):
-            raise ValueError(f"confidence model: mean/scale/weights must each hold {terms} numbers (one per term)")
-        if not (np.isfinite([*mean, *scale, *weights, bias]).all() and (scale > 0).all()):
+        inputs = len(hinge_names(names, knots))
+        if not all(a.shape == (inputs,) for a in (mean, scale, weights)):
+            raise ValueError(
+                f"confidence model: mean/scale/weights must each hold {inputs} numbers (one per term and knot)"
+            )
+        if not (
+            np.isfinite([*mean, *scale, *weights, bias, *(k for t in knots for k in t)]).all() and (scale > 0).all()
+        ):
             raise ValueError("confidence model: numbers must be finite and scales positive")
-        return cls(names, mean, scale, weights, bias)
+        return cls(names, knots, mean, scale, weights, bias)
 
 
 def box_sides(points: np.ndarray) -> list[float]:
