@@ -639,7 +639,8 @@ the model of the manifest's `confidence.with_scene` where it has one:
 
 `Pose.confidence` is the probability that the pose is correct (ADD(-S) < 0.1 × diameter), from a
 logistic model over the scoring terms of `estimate`, each a piecewise-linear curve, fitted on training
-shapes (`python -m export.confidence`; never these objects). Default rule: trust a pose at confidence ≥ {TRUST_THRESHOLD}.
+shapes (`python -m export.confidence`; never these objects).
+Default rule: trust a pose at confidence ≥ {TRUST_THRESHOLD}.
 AUROC: chance that a correct pose scores above a wrong one; ECE: expected calibration error (10 bins).
 
 {report.confidence_table(groups)}{with_frame}
