@@ -188,6 +188,37 @@ def report(name: str, p: np.ndarray, y: np.ndarray) -> dict:
     return row
 
 
+#: The shares of wrong poses a stricter rule may let through: the fit reports
+#: (and records) the lowest threshold, in steps of 0.01, that holds each.
+STRICT_WRONG_ACCEPTED = (0.05, 0.10)
+
+
+def strict_thresholds(p: np.ndarray, y: np.ndarray) -> list[dict]:
+    """For each of :data:`STRICT_WRONG_ACCEPTED`: the lowest threshold (0.50–0.99)
+    accepting at most that share of the wrong poses, and the shares it accepts and keeps."""
+    from edgepose.eval.metrics import acceptance
+
+    rows = []
+    for target in STRICT_WRONG_ACCEPTED:
+        for threshold in np.round(np.arange(0.5, 1.0, 0.01), 2):
+            a = acceptance(p, y, float(threshold))
+            if a.wrong_accepted <= target:
+                rows.append(
+                    {
+                        "wrong_accepted_at_most": target,
+                        "threshold": float(threshold),
+                        "wrong_accepted": a.wrong_accepted,
+                        "correct_kept": a.correct_kept,
+                    }
+                )
+                print(
+                    f"stressed: at most {target:.0%} of wrong poses accepted from confidence >= {threshold:.2f}: "
+                    f"{a.wrong_accepted:.1%} accepted, {a.correct_kept:.1%} of correct kept"
+                )
+                break
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--views", type=int, default=8, help="views per object and stress level")
@@ -269,6 +300,7 @@ def main() -> None:
     for level in dict.fromkeys(levels):
         if level != OTHER_OBJECT:
             report(str(level), held_out[levels == level], correct[levels == level])
+    summary["stricter_thresholds"] = strict_thresholds(held_out[stressed], correct[stressed])
     if other.any():
         summary[OTHER_OBJECT] = {"views": int(other.sum()), "trusted": float((held_out[other] >= 0.5).mean())}
         print(

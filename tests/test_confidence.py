@@ -120,6 +120,18 @@ def test_each_term_is_a_piecewise_linear_curve_through_its_knots():
     assert [shipped.probability(e) for e in evidence] == pytest.approx(1 / (1 + np.exp(-z)), abs=1e-12)
 
 
+def test_the_fit_finds_the_lowest_threshold_that_lets_few_wrong_poses_through():
+    from export.confidence import strict_thresholds
+
+    wrong = [0.55, 0.6, 0.7, 0.8, 0.9, 0.93, 0.95, 0.96, 0.97, 0.98]
+    right = [0.6, 0.9, 0.97, 0.99]
+    rows = strict_thresholds(np.array(wrong + right), np.array([False] * 10 + [True] * 4))
+    # ≤ 5 % of 10 wrong poses is none of them: above 0.98; ≤ 10 % is one: 0.98.
+    assert [(r["wrong_accepted_at_most"], r["threshold"]) for r in rows] == [(0.05, 0.99), (0.10, 0.98)]
+    assert rows[0]["wrong_accepted"] == 0.0 and rows[0]["correct_kept"] == 0.25
+    assert rows[1]["wrong_accepted"] == pytest.approx(0.1) and rows[1]["correct_kept"] == 0.25
+
+
 def test_auroc_counts_ordered_pairs_and_ties():
     assert auroc([0.9, 0.8, 0.2, 0.1], [True, True, False, False]) == 1.0
     assert auroc([0.1, 0.2, 0.8, 0.9], [True, True, False, False]) == 0.0
