@@ -44,6 +44,9 @@ FEATURES: dict[str, str] = {
     "the two best of them settled by 2 ICP iterations (the best such, if a different pose); 1 when none is",
     "rmse_ratio": "coarse ICP RMSE of the chosen hypothesis over the lowest of the rival hypotheses (more than "
     "0.1 d away) that competed with it for the pick; 0 when none competed",
+    "flip_fit_ratio": "fit of the pose over that of the flip margin's best turned rival (settled), on the same "
+    "points: well below 1 when fine detail tells the pose from its turn, about 1 when nothing does; 0 when there "
+    "is no rival",
     "scene_violation": "share of the model's camera-facing points that land off the observed silhouette in front of "
     "the frame's depth there (the model would hide background the camera saw), 0-1; only with the depth image",
 }
@@ -98,6 +101,7 @@ TERMS: dict[str, tuple[Callable[[float], float], ...]] = {
     "translation_constraint": (_value, _log_share),
     "flip_margin": (_value, _clipped_margin, _no_rival),
     "rmse_ratio": (_value,),
+    "flip_fit_ratio": (_value,),
     "scene_violation": (_value, _log_share),
 }
 
@@ -230,6 +234,7 @@ def evidence_of(
     translation_constraint: float,
     flip_margin: float,
     rmse_ratio: float,
+    flip_fit_ratio: float,
     scene_violation: float = 0.0,
 ) -> dict[str, float]:
     """The evidence (:data:`FEATURES`) as a dict of floats."""
@@ -247,5 +252,6 @@ def evidence_of(
         "translation_constraint": float(translation_constraint),
         "flip_margin": float(flip_margin),
         "rmse_ratio": float(rmse_ratio),
+        "flip_fit_ratio": float(flip_fit_ratio),
         "scene_violation": float(scene_violation),
     }

@@ -257,7 +257,10 @@ class FlipMargin(NamedTuple):
     rotations: np.ndarray
     """(R, 3, 3) that rival (model frame → camera), R = 1, or none (R = 0) ..."""
     translations: np.ndarray
-    """(R, 3) ... metres."""
+    """(R, 3) ... metres ..."""
+    fits: np.ndarray
+    """(R,) ... and its mean truncated distance to the hypotheses' observed
+    points, metres (as :attr:`PoseScores.fit`)."""
 
 
 def flip_margin(
@@ -279,7 +282,7 @@ def flip_margin(
     # Each turned pose is moved (not turned) so the query's keypoints land on
     # the model, as the candidates are (~0.05 ms); only the best few are
     # then settled by ICP (settling all of them: ~3× the cost).
-    margin, rotations, translations = codebook.index.flip_margin(
+    margin, rotations, translations, fits = codebook.index.flip_margin(
         query.keypoints,
         query.sample(settings.hypothesis_points, settings.subsample_seed),
         query.free_space,
@@ -300,7 +303,7 @@ def flip_margin(
         FLIP_SETTLE_ITERATIONS,
         settings.icp_max_distance * d,
     )
-    return FlipMargin(margin, rotations, translations)
+    return FlipMargin(margin, rotations, translations, fits)
 
 
 def turned_pose(

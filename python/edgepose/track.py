@@ -204,6 +204,7 @@ class Tracker:
             translation_constraint=tight.translation_constraint[0],
             flip_margin=last.evidence.get("flip_margin", 1.0),
             rmse_ratio=last.evidence.get("rmse_ratio", 0.0),
+            flip_fit_ratio=last.evidence.get("flip_fit_ratio", 0.0),
             scene_violation=scores.scene_violation[0],
         )
         judge = self.encoder.confidence if scene is None else self.encoder.scene_confidence

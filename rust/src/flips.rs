@@ -82,6 +82,10 @@ pub struct FlipMargin {
     pub margin: f64,
     /// That rival: the pose turned, moved onto the view and settled.
     pub rival: Option<Pose>,
+    /// Its mean truncated distance to the observed points, metres (as
+    /// [`PoseScore::fit`]; NaN when there is no rival): set against the
+    /// pose's own, it says whether fine detail tells the two apart.
+    pub rival_fit: f64,
 }
 
 /// How much better `pose` explains the view than itself turned by each of
@@ -135,6 +139,7 @@ pub fn flip_margin(
         return FlipMargin {
             margin: 1.0,
             rival: None,
+            rival_fit: f64::NAN,
         };
     }
     // The rivals worth settling are picked on a quarter of the points and
@@ -194,8 +199,8 @@ pub fn flip_margin(
     } else {
         starts
     };
-    let nets = score_poses(index, observed, grid, &settled, &settings.score);
-    let (best, best_net) = nets
+    let scores = score_poses(index, observed, grid, &settled, &settings.score);
+    let (best, best_net) = scores
         .iter()
         .map(PoseScore::net)
         .enumerate()
@@ -203,6 +208,7 @@ pub fn flip_margin(
     FlipMargin {
         margin: own_net - best_net,
         rival: Some(settled[best]),
+        rival_fit: scores[best].fit,
     }
 }
 
@@ -350,7 +356,7 @@ mod tests {
             &settings,
         );
         assert_eq!(no_turns.margin, 1.0);
-        assert!(no_turns.rival.is_none());
+        assert!(no_turns.rival.is_none() && no_turns.rival_fit.is_nan());
 
         // A turn a few degrees off (a near turn is never exact) leaves the
         // flipped pose's rival, the truth, tilted: unsettled it explains
@@ -384,6 +390,9 @@ mod tests {
         let rival = found.rival.expect("a rival");
         let off = pose_distances(&index, &[rival], &truth, false, 64)[0];
         assert!(off < 0.004, "settled rival {off} m from the truth");
+        // Its fit (the confidence sets it against the pose's) is the rival's own.
+        let rival_score = score_poses(&index, &observed, &grid, &[rival], &settings.score)[0];
+        assert_eq!(found.rival_fit, rival_score.fit);
         assert!(
             settled < 0.0 && unsettled > 0.0,
             "settled {settled}, unsettled {unsettled}"

@@ -21,7 +21,12 @@ use crate::{search, Point3};
 
 /// What `flip_margin` hands Python: the margin and its best rival, if any
 /// (rotations (R, 3, 3), translations (R, 3), R ≤ 1).
-type FlipMarginResult<'py> = (f64, Bound<'py, PyArray3<f64>>, Bound<'py, PyArray2<f64>>);
+type FlipMarginResult<'py> = (
+    f64,
+    Bound<'py, PyArray3<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray1<f64>>,
+);
 
 /// Borrows an observed cloud (N, 3) float32, camera frame; a bad shape is an
 /// `InvalidCloudError`.
@@ -269,8 +274,9 @@ impl PyModelIndex {
     /// (K, 3, 3) and `turn_translations` (K, 3) the model's turns tried (model frame);
     /// the `settled` best screened rivals are settled by `settle_iterations`
     /// of ICP pairing points within `settle_distance` metres. Returns
-    /// `(margin, rotations (R, 3, 3), translations (R, 3))`: the best rival
-    /// (model → camera; R = 1), or none (R = 0) when no turned pose is one.
+    /// `(margin, rotations (R, 3, 3), translations (R, 3), fits (R,))`: the
+    /// best rival (model → camera; R = 1) and its mean truncated distance to
+    /// the observed points (metres), or none (R = 0) when no turned pose is one.
     #[allow(clippy::too_many_arguments)]
     fn flip_margin<'py>(
         &self,
@@ -339,10 +345,12 @@ impl PyModelIndex {
             let found = py
                 .detach(|| flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings));
             let rivals: Vec<Pose> = found.rival.into_iter().collect();
+            let fits: Vec<f64> = rivals.iter().map(|_| found.rival_fit).collect();
             Ok((
                 found.margin,
                 rotations_array(py, rivals.iter().map(|p| &p.rotation)),
                 translations_array(py, rivals.iter().map(|p| &p.translation)),
+                PyArray1::from_vec(py, fits),
             ))
         })
     }
