@@ -160,8 +160,10 @@ def test_acceptance_at_a_threshold():
 
 def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
     """The drill (asymmetric) seen whole: its true pose explains the view
-    clearly better than any half turn about a principal axis (margin > 0),
-    and each half-turned pose is beaten by the true one (margin < 0)."""
+    clearly better than any half turn about a principal axis (margin > 0)
+    and fits it far more closely than its best turned rival (fit ratio well
+    below 1), and each half-turned pose is beaten by the true one (margin
+    < 0) and fits worse than that rival, the truth (fit ratio above 1)."""
     from edgepose.settings import DEFAULT_SETTINGS as S
     from edgepose.stages import flip_margin, prepare_query, score_poses
     from edgepose.views import rotation_about
@@ -171,21 +173,25 @@ def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
     query = prepare_query(view.cloud, codebook)
     model = codebook.model
 
-    def margin(R: np.ndarray, t: np.ndarray) -> float:
+    def margin_and_fit_ratio(R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
         observed = query.sample(S.hypothesis_points, S.subsample_seed)
         scores = score_poses(
             query, codebook, observed, R[None], t[None], S.hypothesis_inlier_distance * model.diameter, 0.0
         )
-        return flip_margin(query, codebook, R, t, scores, S).margin
+        flips = flip_margin(query, codebook, R, t, scores, S)
+        assert flips.fits.shape == (1,)
+        return flips.margin, float(scores.fit[0] / flips.fits[0])
 
     R = view.T_cam_obj[:3, :3]
     t = view.T_cam_obj[:3, 3] + R @ model.centre  # model frame -> camera
-    assert margin(R, t) > 0.1
+    margin, fit_ratio = margin_and_fit_ratio(R, t)
+    assert margin > 0.1 and fit_ratio < 0.7
     centroid, axes = model.principal_axes
     assert np.allclose(axes.T @ axes, np.eye(3), atol=1e-9)
     for a in axes.T:
         flip = rotation_about(a, np.pi)
-        assert margin(R @ flip, t + R @ centroid - R @ flip @ centroid) < 0.0
+        margin, fit_ratio = margin_and_fit_ratio(R @ flip, t + R @ centroid - R @ flip @ centroid)
+        assert margin < 0.0 and fit_ratio > 1.0
 
 
 def test_a_pose_turned_onto_itself_gives_way_to_its_refined_rival(drill):
