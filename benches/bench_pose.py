@@ -267,6 +267,7 @@ def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[
         "correct_add_or_s",
         "score",
         "confidence",
+        "strict_threshold",
         "error",
     ]
     with path.open("w", newline="") as f:
@@ -298,6 +299,7 @@ def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[
                             int(e.correct_add_or_s),
                             f"{v.score:.6g}",
                             f"{v.confidence:.4f}",
+                            f"{v.strict_threshold:.2f}",
                             v.error,
                         ]
                     )
@@ -640,7 +642,9 @@ the model of the manifest's `confidence.with_scene` where it has one:
 `Pose.confidence` is the probability that the pose is correct (ADD(-S) < 0.1 × diameter), from a
 logistic model over the scoring terms of `estimate`, each a piecewise-linear curve, fitted on training
 shapes (`python -m export.confidence`; never these objects).
-Default rule: trust a pose at confidence ≥ {TRUST_THRESHOLD}.
+Default rule: trust a pose at confidence ≥ {TRUST_THRESHOLD}. Strict rule: trust it at confidence ≥
+`Pose.strict_threshold`, the lowest threshold that let at most 5 % of the wrong poses through on the fitting
+data's cross-validated stressed views (recorded with each model; none of these objects).
 AUROC: chance that a correct pose scores above a wrong one; ECE: expected calibration error (10 bins).
 
 {report.confidence_table(groups)}{with_frame}

@@ -37,7 +37,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from edgepose.confidence import FEATURES, SCENE_FEATURES
+from edgepose.confidence import FEATURES, SCENE_FEATURES, STRICT_WRONG_ACCEPTED
 
 from export.shapes import DIAMETER_RANGE, procedural_mesh, shared_mesh_paths
 
@@ -189,17 +189,18 @@ def report(name: str, p: np.ndarray, y: np.ndarray) -> dict:
 
 
 #: The shares of wrong poses a stricter rule may let through: the fit reports
-#: (and records) the lowest threshold, in steps of 0.01, that holds each.
-STRICT_WRONG_ACCEPTED = (0.05, 0.10)
+#: (and records) the lowest threshold, in steps of 0.01, that holds each; the
+#: first is the strict rule's (``Pose.strict_threshold``).
+STRICT_SHARES = (STRICT_WRONG_ACCEPTED, 0.10)
 
 
 def strict_thresholds(p: np.ndarray, y: np.ndarray) -> list[dict]:
-    """For each of :data:`STRICT_WRONG_ACCEPTED`: the lowest threshold (0.50–0.99)
+    """For each of :data:`STRICT_SHARES`: the lowest threshold (0.50–0.99)
     accepting at most that share of the wrong poses, and the shares it accepts and keeps."""
     from edgepose.eval.metrics import acceptance
 
     rows = []
-    for target in STRICT_WRONG_ACCEPTED:
+    for target in STRICT_SHARES:
         for threshold in np.round(np.arange(0.5, 1.0, 0.01), 2):
             a = acceptance(p, y, float(threshold))
             if a.wrong_accepted <= target:

@@ -177,6 +177,9 @@ def test_estimate_from_npy_ply_and_pcd_clouds(drill, tmp_path):
         assert set(result) >= {"matrix", "score", "fit", "view", "timings"}
         assert result["points"] == len(view.cloud)
         assert result["fit"] < 0.005 and result["timings"]["total"] > 0
+        # The default and the strict rule both trust a clean view's pose.
+        assert result["trusted"] and result["trusted_strict"]
+        assert result["confidence"] >= result["strict_threshold"] > 0.5
         assert_close_to_truth(result, view, codebook)
 
 
@@ -352,5 +355,5 @@ def test_eval_at_a_stress_level_reports_confidence_and_draws_a_reliability_diagr
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "stress visible70" in out.stdout and "confidence at stress visible70" in out.stdout
-    assert "AUROC" in out.stdout and (tmp_path / "rel.png").stat().st_size > 10_000
+    assert "AUROC" in out.stdout and "strict" in out.stdout and (tmp_path / "rel.png").stat().st_size > 10_000
     fails_cleanly(run("eval", str(SHIPPED / "power_drill.ply"), "--stress", "visible99"), "--stress must be one of")

@@ -132,6 +132,82 @@ def test_the_fit_finds_the_lowest_threshold_that_lets_few_wrong_poses_through():
     assert rows[1]["wrong_accepted"] == pytest.approx(0.1) and rows[1]["correct_kept"] == 0.25
 
 
+def test_each_pose_carries_the_strict_rule_of_the_model_that_judged_it(drill, tmp_path):
+    """The fit's recorded stricter thresholds come back as the model's rules;
+    every pose carries the ≤ 5 % one of its own model (clouds alone, or given
+    the frame); without recorded rules the strict threshold is NaN; malformed
+    ones are a model files error."""
+    from edgepose.confidence import STRICT_WRONG_ACCEPTED
+    from edgepose.eval.scenes import render_scene
+
+    mesh, codebook = drill
+    manifest = json.loads((MODELS_DIR / "manifest.json").read_text())
+    encoder = edgepose.encoder.default_encoder()
+    for model, entry in (
+        (encoder.confidence, manifest["confidence"]),
+        (encoder.scene_confidence, manifest["confidence"]["with_scene"]),
+    ):
+        assert model is not None
+        recorded = {
+            r["wrong_accepted_at_most"]: r["threshold"]
+            for r in entry["fitted_on"]["cross_validation"]["stricter_thresholds"]
+        }
+        assert model.strict_threshold == recorded[STRICT_WRONG_ACCEPTED] > TRUST_THRESHOLD
+        assert model.threshold_for(0.10) == recorded[0.10] <= model.strict_threshold
+        assert model.threshold_for(0.07) == model.strict_threshold  # the strictest rule loose enough
+        with pytest.raises(ValueError, match="at most 0.01 of wrong poses"):
+            model.threshold_for(0.01)
+    view = render_scene(mesh, "visible70", seed=5)
+    alone = edgepose.estimate(view.cloud, codebook)
+    framed = edgepose.estimate(view.cloud, codebook, depth=view.depth, K=view.K, depth_scale=1.0)
+    assert alone.strict_threshold == encoder.confidence.strict_threshold
+    assert framed.strict_threshold == encoder.scene_confidence.strict_threshold
+    tracker = edgepose.Tracker(codebook)
+    tracker.update(view.cloud)
+    tracked = tracker.update(view.cloud)
+    assert tracked.mode == "tracked" and tracked.strict_threshold == encoder.confidence.strict_threshold
+
+    for name in ("encoder.onnx", "irr.onnx"):
+        shutil.copy(MODELS_DIR / name, tmp_path / name)
+    for entry in (manifest["confidence"], manifest["confidence"]["with_scene"]):
+        del entry["fitted_on"]["cross_validation"]["stricter_thresholds"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    unrecorded = Encoder(tmp_path)
+    assert np.isnan(edgepose.estimate(view.cloud, codebook, encoder=unrecorded).strict_threshold)
+    with pytest.raises(ValueError, match="recorded: none"):
+        unrecorded.confidence.threshold_for(0.05)  # type: ignore[union-attr]
+    manifest["confidence"]["fitted_on"]["cross_validation"]["stricter_thresholds"] = [{"threshold": 0.9}]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(edgepose.ModelFilesError, match="stricter_thresholds"):
+        Encoder(tmp_path)
+
+
+def test_the_benchmark_counts_what_each_poses_strict_rule_accepts():
+    from edgepose.eval import pose_errors
+    from edgepose.eval.benchmark import ViewResult, summarise_confidence
+
+    points = np.random.default_rng(0).normal(size=(100, 3)) * 0.05
+    right, wrong = np.eye(4), np.eye(4)
+    wrong[:3, 3] = [0.1, 0.0, 0.0]
+
+    def view(T: np.ndarray, confidence: float, strict: float) -> ViewResult:
+        errors = pose_errors(points, T, np.eye(4), 0.2, False)
+        return ViewResult("edgepose", "part", 0, 0, 100, 0.01, errors, 1.0, T, "", confidence, strict)
+
+    # Judged by two models (strict at 0.9 and 0.95): a right pose at 0.92
+    # passes the first only; a wrong one at 0.93 passes neither.
+    views = [
+        view(right, 0.99, 0.9), view(right, 0.92, 0.95), view(right, 0.92, 0.9), view(right, 0.6, 0.9),
+        view(wrong, 0.93, 0.95), view(wrong, 0.7, 0.9),
+    ]  # fmt: skip
+    c = summarise_confidence(views)
+    assert c is not None and c.strict_thresholds == (0.9, 0.95)
+    assert c.strict_correct_kept == pytest.approx(50.0) and c.strict_wrong_accepted == 0.0
+    assert c.correct_kept == 100.0 and c.wrong_accepted == 100.0  # the default rule, at 0.5
+    unknown = summarise_confidence([view(right, 0.99, float("nan"))])
+    assert unknown is not None and np.isnan(unknown.strict_correct_kept) and unknown.strict_thresholds == ()
+
+
 def test_auroc_counts_ordered_pairs_and_ties():
     assert auroc([0.9, 0.8, 0.2, 0.1], [True, True, False, False]) == 1.0
     assert auroc([0.1, 0.2, 0.8, 0.9], [True, True, False, False]) == 0.0

@@ -7,7 +7,9 @@ computes anyway (the *evidence*, :data:`FEATURES`), fitted on training shapes
 in procedural scenes, clean and stressed, never on the benchmark objects
 (``python -m export.confidence``). The fitted weights ship with the networks,
 in ``models/manifest.json`` under ``confidence``, with the features' names
-and definitions. Trust a pose at ``confidence >= TRUST_THRESHOLD``.
+and definitions. Trust a pose at ``confidence >= TRUST_THRESHOLD``; a robot
+that must rarely act on a wrong pose can ask for the model's strict rule,
+``confidence >= Pose.strict_threshold`` (:meth:`ConfidenceModel.threshold_for`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,10 @@ import numpy as np
 
 #: The documented default rule: trust a pose whose confidence is at least this.
 TRUST_THRESHOLD = 0.5
+
+#: The strict rule (``Pose.strict_threshold``) let at most this share of the
+#: wrong poses through on the fitting data's cross-validated stressed views.
+STRICT_WRONG_ACCEPTED = 0.05
 
 #: The evidence, by name: what each term means. Fractions are of the observed
 #: points the hypotheses were scored on (``settings.hypothesis_points``), at
@@ -127,6 +133,21 @@ def hinge_names(names: tuple[str, ...], knots: tuple[tuple[float, ...], ...]) ->
 
 
 @dataclass(frozen=True)
+class StricterRule:
+    """A threshold above the default one, as ``export.confidence`` measured it
+    on the fitting data (held out by 4-fold cross-validation, stressed views)."""
+
+    wrong_accepted_at_most: float
+    """The share of wrong poses it was chosen to let through at most, 0–1 ..."""
+    threshold: float
+    """... the lowest confidence (in steps of 0.01) that did ..."""
+    wrong_accepted: float
+    """... the share of wrong poses it let through ..."""
+    correct_kept: float
+    """... and the share of correct poses it kept, 0–1."""
+
+
+@dataclass(frozen=True)
 class ConfidenceModel:
     """Logistic regression over transformed, standardised evidence, each term
     a piecewise-linear curve: the term itself plus max(0, term − knot) at its
@@ -142,6 +163,8 @@ class ConfidenceModel:
     weights: np.ndarray
     """(I,) on the standardised inputs."""
     bias: float
+    stricter_rules: tuple[StricterRule, ...] = ()
+    """Thresholds that let fewer wrong poses through than 0.5, recorded with the fit (none: not recorded)."""
     _raw: tuple[tuple[tuple[str, Callable[[float], float], float, tuple[tuple[float, float], ...]], ...], float] = (
         field(init=False, repr=False, compare=False)
     )
@@ -175,6 +198,28 @@ class ConfidenceModel:
             z += c * x + sum(ck * (x - k) for k, ck in hinges if x > k)
         return 1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0)))
 
+    def threshold_for(self, wrong_accepted: float) -> float:
+        """The lowest threshold that let at most ``wrong_accepted`` (0–1) of the
+        wrong poses through on the fitting data (:attr:`stricter_rules`: the
+        strictest recorded rule that is loose enough); ``ValueError`` when no
+        recorded rule is that strict."""
+        fitting = [r for r in self.stricter_rules if r.wrong_accepted_at_most <= wrong_accepted]
+        if not fitting:
+            recorded = ", ".join(f"{r.wrong_accepted_at_most:g}" for r in self.stricter_rules) or "none"
+            raise ValueError(
+                f"no stricter rule recorded for at most {wrong_accepted:g} of wrong poses accepted "
+                f"(recorded: {recorded}; refit with python -m export.confidence --write)"
+            )
+        return max(fitting, key=lambda r: r.wrong_accepted_at_most).threshold
+
+    @property
+    def strict_threshold(self) -> float:
+        """:meth:`threshold_for` :data:`STRICT_WRONG_ACCEPTED`; NaN when not recorded."""
+        try:
+            return self.threshold_for(STRICT_WRONG_ACCEPTED)
+        except ValueError:
+            return float("nan")
+
     def to_manifest(self) -> dict[str, Any]:
         return {
             "features": {n: FEATURES[n] for n in self.features},
@@ -190,7 +235,9 @@ class ConfidenceModel:
     @classmethod
     def from_manifest(cls, info: dict[str, Any]) -> ConfidenceModel:
         """From the manifest's ``confidence`` entry (without ``knots``: linear
-        in every term); ``ValueError`` naming what is wrong."""
+        in every term; the stricter rules from its
+        ``fitted_on.cross_validation.stricter_thresholds``, if any);
+        ``ValueError`` naming what is wrong."""
         names = tuple(info["features"])
         unknown = [n for n in names if n not in FEATURES]
         if unknown:
@@ -210,7 +257,23 @@ class ConfidenceModel:
             np.isfinite([*mean, *scale, *weights, bias, *(k for t in knots for k in t)]).all() and (scale > 0).all()
         ):
             raise ValueError("confidence model: numbers must be finite and scales positive")
-        return cls(names, knots, mean, scale, weights, bias)
+        return cls(names, knots, mean, scale, weights, bias, stricter_rules_of(info))
+
+
+def stricter_rules_of(info: dict[str, Any]) -> tuple[StricterRule, ...]:
+    """The stricter rules a manifest's ``confidence`` entry records (under
+    ``fitted_on.cross_validation.stricter_thresholds``); ``ValueError`` when malformed."""
+    rows = info.get("fitted_on", {}).get("cross_validation", {}).get("stricter_thresholds", [])
+    try:
+        rules = tuple(StricterRule(**{k: float(row[k]) for k in StricterRule.__dataclass_fields__}) for row in rows)
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(
+            "confidence model: each stricter_thresholds entry needs numbers wrong_accepted_at_most, threshold, "
+            "wrong_accepted and correct_kept"
+        ) from None
+    if not all(0.0 <= v <= 1.0 for r in rules for v in vars(r).values()):
+        raise ValueError("confidence model: stricter_thresholds shares and thresholds must lie in 0-1")
+    return rules
 
 
 def box_sides(points: np.ndarray) -> list[float]:

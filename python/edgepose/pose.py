@@ -93,6 +93,13 @@ class Pose:
     ``>= 0.5``. From the scoring terms in ``evidence`` by the shipped
     calibrated model (:mod:`edgepose.confidence`); NaN when the networks in
     use ship none."""
+    strict_threshold: float = float("nan")
+    """The strict rule: trust the pose at ``confidence >=`` this when acting
+    on a wrong pose costs more than looking again. The lowest threshold that
+    let at most 5 % of the wrong poses through (:data:`edgepose.confidence.STRICT_WRONG_ACCEPTED`)
+    on the fitting data's cross-validated stressed views, recorded with the
+    model that judged this pose (0.94 from a cloud alone, 0.95 given the
+    frame, with the shipped networks); NaN without one."""
     evidence: dict = field(default_factory=dict)
     """The scoring terms ``confidence`` is computed from, by name
     (:data:`edgepose.confidence.FEATURES`)."""
@@ -243,6 +250,8 @@ def pose_from_query(
     pairs = settings.pair_poses if refine else 0
     observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
 
+    judge = encoder.confidence if query.scene is None else encoder.scene_confidence
+
     def judged(
         found: Candidates, result: Refined, loose: PoseScores, searches: int, flips: FlipMargin | None = None
     ) -> tuple[dict, float, FlipMargin]:
@@ -273,8 +282,7 @@ def pose_from_query(
             rmse_ratio=result.rmse_ratio,
             scene_violation=loose.scene_violation[0],
         )
-        model = encoder.confidence if query.scene is None else encoder.scene_confidence
-        return evidence, model.probability(evidence) if model else float("nan"), flips
+        return evidence, judge.probability(evidence) if judge else float("nan"), flips
 
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
@@ -334,6 +342,7 @@ def pose_from_query(
         free_space_violation=float(result.scores.free_space_violation[0]),
         kept_points=len(query.points),
         confidence=confidence,
+        strict_threshold=judge.strict_threshold if judge else float("nan"),
         evidence=evidence,
         symmetry=codebook.symmetry,
     )

@@ -117,6 +117,8 @@ def pose_json(pose: Pose, points: int) -> dict[str, Any]:
         "matrix": pose.matrix.tolist(),
         "confidence": pose.confidence if np.isfinite(pose.confidence) else None,
         "trusted": bool(pose.confidence >= TRUST_THRESHOLD),
+        "strict_threshold": pose.strict_threshold if np.isfinite(pose.strict_threshold) else None,
+        "trusted_strict": bool(pose.confidence >= pose.strict_threshold),
         "symmetry": pose.symmetry.describe(),
         "score": pose.score,
         "fit": pose.fit,
@@ -171,11 +173,15 @@ def estimate_caption(cloud_name: str, points: int, pose: Pose, e: PoseErrors | N
     return lines
 
 
-def trust_text(confidence: float) -> str:
-    """What the default rule says about a confidence."""
+def trust_text(confidence: float, strict_threshold: float = float("nan")) -> str:
+    """What the default rule, and the strict one when known, say about a confidence."""
     if confidence != confidence:  # NaN
         return "no confidence model shipped with these networks"
-    return f"{'trusted' if confidence >= TRUST_THRESHOLD else 'doubtful'}: the rule is >= {TRUST_THRESHOLD}"
+    verdict = lambda threshold: "trusted" if confidence >= threshold else "doubtful"  # noqa: E731
+    text = f"{verdict(TRUST_THRESHOLD)}: the rule is >= {TRUST_THRESHOLD}"
+    if strict_threshold == strict_threshold:
+        text += f"; {verdict(strict_threshold)} by the strict rule, >= {strict_threshold:.2f}"
+    return text
 
 
 def matrix_text(matrix: np.ndarray, indent: int = 12) -> str:
@@ -199,7 +205,7 @@ def demo_text(
         "[bold]true[/bold]        T_cam_obj =\n" + matrix_text(view.T_cam_obj),
         f"[bold]errors[/bold]      rotation {e.rotation_deg:.2f}°, translation {e.translation_mm:.1f} mm, "
         f"{metric} {e.add_or_s * 1000:.1f} mm ({verdict} at 0.1 × diameter = {threshold_mm:.1f} mm)",
-        f"[bold]confidence[/bold]  {pose.confidence:.2f} ({trust_text(pose.confidence)}); "
+        f"[bold]confidence[/bold]  {pose.confidence:.2f} ({trust_text(pose.confidence, pose.strict_threshold)}); "
         f"symmetries: {pose.symmetry.describe()}",
         f"[bold]timings[/bold]     {pose.timings['total'] * 1000:.1f} ms in all ({stages} ms)",
     ]
@@ -396,6 +402,9 @@ def confidence_rows(groups: dict[str, list[ViewResult]]) -> tuple[list[str], lis
                 f"{c.ece:.3f}",
                 f"{c.wrong_accepted:.1f} %" if np.isfinite(c.wrong_accepted) else "–",
                 f"{c.correct_kept:.1f} %" if np.isfinite(c.correct_kept) else "–",
+                " / ".join(f"{t:.2f}" for t in c.strict_thresholds) or "–",
+                f"{c.strict_wrong_accepted:.1f} %" if np.isfinite(c.strict_wrong_accepted) else "–",
+                f"{c.strict_correct_kept:.1f} %" if np.isfinite(c.strict_correct_kept) else "–",
             ]
         )
     header = [
@@ -406,6 +415,9 @@ def confidence_rows(groups: dict[str, list[ViewResult]]) -> tuple[list[str], lis
         "ECE",
         f"wrong accepted (≥ {TRUST_THRESHOLD})",
         f"correct kept (≥ {TRUST_THRESHOLD})",
+        "strict rule (≥)",
+        "wrong accepted (strict)",
+        "correct kept (strict)",
     ]
     return header, rows
 
@@ -413,4 +425,4 @@ def confidence_rows(groups: dict[str, list[ViewResult]]) -> tuple[list[str], lis
 def confidence_table(groups: dict[str, list[ViewResult]]) -> str:
     """:func:`confidence_rows` as markdown."""
     header, rows = confidence_rows(groups)
-    return markdown_table(header, "l" + "r" * 6, rows)
+    return markdown_table(header, "l" + "r" * (len(header) - 1), rows)

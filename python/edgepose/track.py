@@ -222,6 +222,7 @@ class Tracker:
             kept_points=len(seen),
             searches=0,
             confidence=confidence,
+            strict_threshold=judge.strict_threshold if judge else float("nan"),
             evidence=evidence,
             mode="tracked",
         )

@@ -111,7 +111,7 @@ def evaluate(
 
     Prints per object: ADD-S and ADD(-S) below 0.1 × diameter, their AUC (0–10 cm), the median estimate latency and
     the preparation (codebook build) time; then how well each edgepose method's confidence tells its correct poses
-    from its wrong ones (AUROC, calibration error, what the >= 0.5 rule accepts).
+    from its wrong ones (AUROC, calibration error, what the >= 0.5 rule and the strict rule accept).
     --ray evaluates one object per Ray task (accuracy is the same; latencies
     then include the tasks' competition for the CPUs).
     """
@@ -164,7 +164,9 @@ def evaluate(
         stdout_console().print(eval_table(runs, [r.name for r in evaluated], symmetric_names, title))
         header, rows = confidence_rows({run.name: run.views for run in runs})
         if rows:
-            stdout_console().print(rich_table(f"confidence at stress {stress}", header, "l" + "r" * 6, rows))
+            stdout_console().print(
+                rich_table(f"confidence at stress {stress}", header, "l" + "r" * (len(header) - 1), rows)
+            )
         if reliability is not None:
             with_confidence = [r for r in runs if summarise_confidence(r.views) is not None]
             save_reliability_png(

@@ -74,6 +74,8 @@ class LastRun:
     """Seconds per stage."""
     confidence: float = float("nan")
     """Probability that the pose is correct (edgepose's ``Pose.confidence``; NaN for the peers)."""
+    strict_threshold: float = float("nan")
+    """edgepose's ``Pose.strict_threshold`` (NaN for the peers)."""
 
 
 class Open3DBaseline:
@@ -324,6 +326,7 @@ class EdgePoseMethod:
             score=float(getattr(pose, "score", 0.0)),
             timings=dict(timings) if isinstance(timings, dict) else {},
             confidence=float(getattr(pose, "confidence", float("nan"))),
+            strict_threshold=float(getattr(pose, "strict_threshold", float("nan"))),
         )
         return np.asarray(pose.matrix, dtype=np.float64)
 

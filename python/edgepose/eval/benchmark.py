@@ -70,6 +70,8 @@ class ViewResult:
     error: str
     confidence: float = float("nan")
     """The method's probability that the pose is correct (edgepose; NaN for methods without one)."""
+    strict_threshold: float = float("nan")
+    """The confidence its strict rule asks for (edgepose's ``Pose.strict_threshold``; NaN: none)."""
 
 
 @dataclass
@@ -199,6 +201,7 @@ def run_method(
                 T_est=T_est,
                 error=error,
                 confidence=float(getattr(last, "confidence", np.nan)) if not error else 0.0,
+                strict_threshold=float(getattr(last, "strict_threshold", np.nan)),
             )
             run.views.append(result)
             done.append(result)
@@ -264,6 +267,12 @@ class ConfidenceSummary:
     correct_kept: float
     """Percent of correct poses with confidence ≥ the trust threshold (NaN: none correct)."""
     threshold: float = TRUST_THRESHOLD
+    strict_wrong_accepted: float = float("nan")
+    """Percent of wrong poses with confidence ≥ their strict threshold (NaN: none wrong, or no strict rule) ..."""
+    strict_correct_kept: float = float("nan")
+    """... and of correct poses (NaN: none correct, or no strict rule)."""
+    strict_thresholds: tuple[float, ...] = ()
+    """The distinct strict thresholds of the views (none: no strict rule)."""
 
 
 def summarise_confidence(views: list[ViewResult], threshold: float = TRUST_THRESHOLD) -> ConfidenceSummary | None:
@@ -273,6 +282,14 @@ def summarise_confidence(views: list[ViewResult], threshold: float = TRUST_THRES
         return None
     y = np.array([v.errors.correct_add_or_s for v in views], dtype=bool)
     a = acceptance(p, y, threshold)
+    # The strict rule: each pose against the threshold of the model that judged it.
+    strict = np.array([v.strict_threshold for v in views], dtype=np.float64)
+    known = np.isfinite(strict).all()
+    accepted = p >= strict
+
+    def strict_share(mask: np.ndarray) -> float:
+        return 100 * float(accepted[mask].mean()) if known and mask.any() else float("nan")
+
     return ConfidenceSummary(
         len(views),
         100 * y.mean(),
@@ -281,6 +298,9 @@ def summarise_confidence(views: list[ViewResult], threshold: float = TRUST_THRES
         100 * a.wrong_accepted,
         100 * a.correct_kept,
         threshold,
+        strict_share(~y),
+        strict_share(y),
+        tuple(sorted(set(strict.tolist()))) if known else (),
     )
 
 
