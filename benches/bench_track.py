@@ -25,6 +25,11 @@ again, pose flips (the pose turning by more than 90° between consecutive
 frames while the truth turns by less than 20°: a symmetric object's
 equivalent poses swapping), and time per frame (median, p99; the tracker's
 tracked frames alone too). ADD-S for objects with a detected symmetry.
+Then, pooled over the objects, how well each edgepose method's
+``Pose.confidence`` tells its correct poses from its wrong ones, tracked
+frames apart from estimated ones (the model was fitted on estimated poses
+only): AUROC, calibration error, and what the 0.5 rule and the strict rule
+(``Pose.strict_threshold``) accept.
 """
 
 from __future__ import annotations
@@ -72,6 +77,10 @@ class Run:
     seconds: list[float] = field(default_factory=list)
     modes: list[str] = field(default_factory=list)
     rotations: list[np.ndarray] = field(default_factory=list)
+    confidences: list[float] = field(default_factory=list)
+    """Pose.confidence per frame (NaN: no pose, or a method without one) ..."""
+    strict: list[float] = field(default_factory=list)
+    """... and its Pose.strict_threshold."""
 
 
 def trajectory(frames: int, seed: int, centre: np.ndarray) -> list[np.ndarray]:
@@ -157,13 +166,14 @@ def run_method(method: str, seq: Sequence, codebook: edgepose.Codebook) -> Run:
     last_T: np.ndarray | None = None
     for cloud, T_true in zip(seq.clouds, seq.poses):
         t0 = time.perf_counter()
-        mode = ""
+        mode, pose = "", None
         try:
             if method == "tracker":
                 pose = tracker.update(cloud)
                 T, mode = pose.matrix, pose.mode
             elif method == "estimate":
-                T = edgepose.estimate(cloud, codebook).matrix
+                pose = edgepose.estimate(cloud, codebook)
+                T, mode = pose.matrix, "estimated"
             else:
                 assert icp_peer is not None
                 T = edgepose.estimate(cloud, codebook).matrix if last_T is None else icp_peer.refine(cloud, last_T)
@@ -177,6 +187,8 @@ def run_method(method: str, seq: Sequence, codebook: edgepose.Codebook) -> Run:
         run.seconds.append(elapsed)
         run.modes.append(mode if T is not None else "none")
         run.rotations.append(T[:3, :3] if T is not None else None)
+        run.confidences.append(pose.confidence if pose is not None else np.nan)
+        run.strict.append(pose.strict_threshold if pose is not None else np.nan)
     return run
 
 
@@ -248,6 +260,48 @@ def summary(run: Run, seq: Sequence, diameter: float) -> dict:
     }
 
 
+def confidence_rows(runs: list[tuple[Run, float]]) -> list[list[str]]:
+    """Per method and kind of frame (tracked, estimated: the rest), pooled
+    over ``runs`` (each with its object's diameter): how well confidence
+    tells correct poses from wrong ones. Frames without a pose are left out."""
+    from edgepose.confidence import TRUST_THRESHOLD
+    from edgepose.eval.metrics import auroc, calibration
+
+    pooled: dict[tuple[str, str], list[np.ndarray]] = {}
+    for run, diameter in runs:
+        p, strict = np.array(run.confidences), np.array(run.strict)
+        correct = np.array(run.errors) < 0.1 * diameter
+        tracked = np.array(run.modes) == "tracked"
+        for kind, mask in (("tracked", tracked), ("estimated", ~tracked)):
+            keep = mask & np.isfinite(p)
+            if keep.any():
+                pooled.setdefault((run.method, kind), []).append(np.stack([p[keep], strict[keep], correct[keep]]))
+    rows = []
+    for (method, kind), parts in pooled.items():
+        p, strict, y = np.concatenate(parts, axis=1)
+        y = y.astype(bool)
+
+        def share(accepted: np.ndarray, mask: np.ndarray) -> str:
+            return f"{100 * accepted[mask].mean():.1f} %" if mask.any() else "–"
+
+        known = np.isfinite(strict).all()
+        rows.append(
+            [
+                method,
+                kind,
+                f"{len(y)}",
+                f"{100 * y.mean():.1f} %",
+                f"{auroc(p, y):.3f}" if 0 < y.sum() < len(y) else "–",
+                f"{calibration(p, y).ece:.3f}",
+                share(p >= TRUST_THRESHOLD, ~y),
+                share(p >= TRUST_THRESHOLD, y),
+                share(p >= strict, ~y) if known else "–",
+                share(p >= strict, y) if known else "–",
+            ]
+        )
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=1000)
@@ -258,7 +312,7 @@ def main() -> None:
     methods = args.methods.split(",")
     started = time.perf_counter()
     load_before = os.getloadavg()
-    rows = []
+    rows, runs = [], []
     for k, name in enumerate(args.objects.split(",")):
         mesh = read_mesh(YCB / f"{name}.ply")
         codebook = edgepose.build_codebook(mesh)
@@ -273,6 +327,7 @@ def main() -> None:
                 continue
             s = summary(run, seq, codebook.model.diameter)
             rows.append((name, method, s))
+            runs.append((run, codebook.model.diameter))
             print(
                 f"  {method:<11} smooth {s['smooth_ok']:5.1f}%  visible≥50% {s['visible_ok']:5.1f}%  "
                 f"drift {s['drift_mm']:+.1f} mm  recovery {s['recovery']}  flips {s['flips']}  "
@@ -280,10 +335,13 @@ def main() -> None:
                 f"{s['tracked_p99_ms']:.2f} ms  reinit {s['reinit']}",
                 flush=True,
             )
-    write_markdown(args, rows, methods, time.perf_counter() - started, load_before)
+    confidence = confidence_rows(runs)
+    for row in confidence:
+        print("  confidence: " + "  ".join(row), flush=True)
+    write_markdown(args, rows, methods, confidence, time.perf_counter() - started, load_before)
 
 
-def write_markdown(args, rows, methods, wall_s: float, load_before) -> None:
+def write_markdown(args, rows, methods, confidence: list[list[str]], wall_s: float, load_before) -> None:
     def fmt(v, spec: str) -> str:
         return "–" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, spec)
 
@@ -332,6 +390,22 @@ def write_markdown(args, rows, methods, wall_s: float, load_before) -> None:
                 f"(mean over objects), flips {sum(s['flips'] for s in mine)}, median "
                 f"{np.median([s['median_ms'] for s in mine]):.2f} ms per frame"
             )
+    confidence_table = report.markdown_table(
+        [
+            "method",
+            "frames",
+            "poses",
+            "correct",
+            "AUROC",
+            "ECE",
+            "wrong accepted (≥ 0.5)",
+            "correct kept (≥ 0.5)",
+            "wrong accepted (strict)",
+            "correct kept (strict)",
+        ],
+        "ll" + "r" * 8,
+        confidence,
+    )
     text = f"""# Tracking benchmark
 
 Generated by `benches/bench_track.py`; do not edit by hand.
@@ -349,6 +423,13 @@ Generated by `benches/bench_track.py`; do not edit by hand.
 {table}
 
 {chr(10).join(pooled)}
+
+## Confidence
+
+Pooled over the objects; frames without a pose left out. Correct: ADD(-S) < 0.1 d.
+Strict rule: confidence ≥ `Pose.strict_threshold`.
+
+{confidence_table}
 """
     args.out.write_text(text)
     print(f"wrote {args.out}")

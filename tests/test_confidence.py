@@ -154,7 +154,7 @@ def test_each_pose_carries_the_strict_rule_of_the_model_that_judged_it(drill, tm
         }
         assert model.strict_threshold == recorded[STRICT_WRONG_ACCEPTED] > TRUST_THRESHOLD
         assert model.threshold_for(0.10) == recorded[0.10] <= model.strict_threshold
-        assert model.threshold_for(0.07) == model.strict_threshold  # the strictest rule loose enough
+        assert model.threshold_for(0.07) == model.strict_threshold  # the rule of the largest share not above 0.07
         with pytest.raises(ValueError, match="at most 0.01 of wrong poses"):
             model.threshold_for(0.01)
     view = render_scene(mesh, "visible70", seed=5)

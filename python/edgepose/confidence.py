@@ -200,9 +200,9 @@ class ConfidenceModel:
 
     def threshold_for(self, wrong_accepted: float) -> float:
         """The lowest threshold that let at most ``wrong_accepted`` (0–1) of the
-        wrong poses through on the fitting data (:attr:`stricter_rules`: the
-        strictest recorded rule that is loose enough); ``ValueError`` when no
-        recorded rule is that strict."""
+        wrong poses through on the fitting data: that of the recorded rule
+        (:attr:`stricter_rules`) with the largest share not above it;
+        ``ValueError`` when no recorded rule is that strict."""
         fitting = [r for r in self.stricter_rules if r.wrong_accepted_at_most <= wrong_accepted]
         if not fitting:
             recorded = ", ".join(f"{r.wrong_accepted_at_most:g}" for r in self.stricter_rules) or "none"
