@@ -265,7 +265,7 @@ def confidence_rows(runs: list[tuple[Run, float]]) -> list[list[str]]:
     over ``runs`` (each with its object's diameter): how well confidence
     tells correct poses from wrong ones. Frames without a pose are left out."""
     from edgepose.confidence import TRUST_THRESHOLD
-    from edgepose.eval.metrics import auroc, calibration
+    from edgepose.eval.metrics import Acceptance, acceptance, auroc, calibration
 
     pooled: dict[tuple[str, str], list[np.ndarray]] = {}
     for run, diameter in runs:
@@ -280,11 +280,13 @@ def confidence_rows(runs: list[tuple[Run, float]]) -> list[list[str]]:
     for (method, kind), parts in pooled.items():
         p, strict, y = np.concatenate(parts, axis=1)
         y = y.astype(bool)
-
-        def share(accepted: np.ndarray, mask: np.ndarray) -> str:
-            return f"{100 * accepted[mask].mean():.1f} %" if mask.any() else "–"
-
+        default = acceptance(p, y, TRUST_THRESHOLD)
         known = np.isfinite(strict).all()
+        strict_rule = acceptance(p, y, strict) if known else Acceptance(strict, np.nan, np.nan)
+
+        def share(v: float) -> str:
+            return f"{100 * v:.1f} %" if np.isfinite(v) else "–"
+
         rows.append(
             [
                 method,
@@ -293,10 +295,10 @@ def confidence_rows(runs: list[tuple[Run, float]]) -> list[list[str]]:
                 f"{100 * y.mean():.1f} %",
                 f"{auroc(p, y):.3f}" if 0 < y.sum() < len(y) else "–",
                 f"{calibration(p, y).ece:.3f}",
-                share(p >= TRUST_THRESHOLD, ~y),
-                share(p >= TRUST_THRESHOLD, y),
-                share(p >= strict, ~y) if known else "–",
-                share(p >= strict, y) if known else "–",
+                share(default.wrong_accepted),
+                share(default.correct_kept),
+                share(strict_rule.wrong_accepted),
+                share(strict_rule.correct_kept),
             ]
         )
     return rows

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -212,7 +213,7 @@ class ConfidenceModel:
             )
         return max(fitting, key=lambda r: r.wrong_accepted_at_most).threshold
 
-    @property
+    @cached_property
     def strict_threshold(self) -> float:
         """:meth:`threshold_for` :data:`STRICT_WRONG_ACCEPTED`; NaN when not recorded."""
         try:

@@ -177,7 +177,10 @@ def trust_text(confidence: float, strict_threshold: float = float("nan")) -> str
     """What the default rule, and the strict one when known, say about a confidence."""
     if confidence != confidence:  # NaN
         return "no confidence model shipped with these networks"
-    verdict = lambda threshold: "trusted" if confidence >= threshold else "doubtful"  # noqa: E731
+
+    def verdict(threshold: float) -> str:
+        return "trusted" if confidence >= threshold else "doubtful"
+
     text = f"{verdict(TRUST_THRESHOLD)}: the rule is >= {TRUST_THRESHOLD}"
     if strict_threshold == strict_threshold:
         text += f"; {verdict(strict_threshold)} by the strict rule, >= {strict_threshold:.2f}"

@@ -19,7 +19,7 @@ import numpy as np
 
 from edgepose.confidence import TRUST_THRESHOLD
 from edgepose.eval.baselines import NO_POSE, PoseMethod
-from edgepose.eval.metrics import PoseErrors, acceptance, auc, auroc, calibration, pose_errors
+from edgepose.eval.metrics import Acceptance, PoseErrors, acceptance, auc, auroc, calibration, pose_errors
 from edgepose.eval.scenes import render_scene
 from edgepose.eval.stress import STRESS_LEVELS, Stress
 
@@ -284,12 +284,8 @@ def summarise_confidence(views: list[ViewResult], threshold: float = TRUST_THRES
     a = acceptance(p, y, threshold)
     # The strict rule: each pose against the threshold of the model that judged it.
     strict = np.array([v.strict_threshold for v in views], dtype=np.float64)
-    known = np.isfinite(strict).all()
-    accepted = p >= strict
-
-    def strict_share(mask: np.ndarray) -> float:
-        return 100 * float(accepted[mask].mean()) if known and mask.any() else float("nan")
-
+    known = bool(np.isfinite(strict).all())
+    s = acceptance(p, y, strict) if known else Acceptance(strict, float("nan"), float("nan"))
     return ConfidenceSummary(
         len(views),
         100 * y.mean(),
@@ -298,8 +294,8 @@ def summarise_confidence(views: list[ViewResult], threshold: float = TRUST_THRES
         100 * a.wrong_accepted,
         100 * a.correct_kept,
         threshold,
-        strict_share(~y),
-        strict_share(y),
+        100 * s.wrong_accepted,
+        100 * s.correct_kept,
         tuple(sorted(set(strict.tolist()))) if known else (),
     )
 

@@ -242,14 +242,17 @@ def calibration(confidence: np.ndarray, correct: np.ndarray, bins: int = 10) -> 
 class Acceptance:
     """What a confidence threshold lets through."""
 
-    threshold: float
+    threshold: float | np.ndarray
+    """One threshold for every pose, or (N,) one per pose (each pose's own rule)."""
     wrong_accepted: float
     """Share (0–1) of wrong poses with confidence ≥ threshold (NaN: no wrong poses)."""
     correct_kept: float
     """Share (0–1) of correct poses with confidence ≥ threshold (NaN: no correct poses)."""
 
 
-def acceptance(confidence: np.ndarray, correct: np.ndarray, threshold: float = 0.5) -> Acceptance:
+def acceptance(confidence: np.ndarray, correct: np.ndarray, threshold: float | np.ndarray = 0.5) -> Acceptance:
+    """The shares of wrong and correct poses at confidence ≥ ``threshold``
+    (a number, or (N,) one per pose)."""
     p, y = _scored(confidence, correct)
     accepted = p >= threshold
 

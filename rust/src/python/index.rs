@@ -345,7 +345,7 @@ impl PyModelIndex {
             let found = py
                 .detach(|| flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings));
             let rivals: Vec<Pose> = found.rival.into_iter().collect();
-            let fits: Vec<f64> = rivals.iter().map(|_| found.rival_fit).collect();
+            let fits = vec![found.rival_fit; rivals.len()];
             Ok((
                 found.margin,
                 rotations_array(py, rivals.iter().map(|p| &p.rotation)),
