@@ -8,9 +8,10 @@ from __future__ import annotations
 import edgepose
 import numpy as np
 import pytest
+import trimesh
 from edgepose import _core
-from edgepose.cloud import FLYING_PIXEL_JUMP, depth_discontinuities, dilate, erode
-from edgepose.eval import pose_errors, render_scene
+from edgepose.cloud import FLYING_PIXEL_JUMP, clean_cloud, depth_discontinuities, dilate, erode
+from edgepose.eval import pose_errors, render_scene, render_view
 from edgepose.stages import near_the_cloud, pair_poses, prepare_query
 
 K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
@@ -68,6 +69,26 @@ def test_segmentation_drops_a_spilled_background_ring_and_keeps_an_occluded_obje
     assert keep[on_object].all(), "both halves of the occluded object are kept"
     assert not keep[~on_object].any(), "the wall ring behind it is dropped"
     assert 0.0008 < spacing < 0.0016  # 0.6 m / 500 px = 1.2 mm between pixels
+
+
+@pytest.mark.parametrize("steepness", [70.0, 75.0])
+def test_segmentation_keeps_a_box_face_seen_nearly_edge_on(steepness):
+    """A 21 × 16 × 6 cm box rendered at 0.7 m with its 16 × 6 cm end face
+    ``steepness`` degrees from face-on: sparse in space, so steps 1 and 2 of
+    the segmentation cut half of it away; step 3 puts it back."""
+    box = trimesh.creation.box(extents=(0.21, 0.16, 0.06))
+    turn = np.radians(90.0 - steepness)
+    T = trimesh.transformations.rotation_matrix(turn, [0, 1, 0])
+    T[2, 3] = 0.7
+    cloud = clean_cloud(render_view(box, T_cam_obj=T, seed=3).cloud, 0.27, 2048)
+    in_box = (cloud - T[:3, 3]) @ T[:3, :3]
+    on_end = np.abs(in_box[:, 0]) > 0.105 - 0.002
+    assert on_end.sum() > 100
+    keep_before, _ = _core.segment_object(cloud, 0.27, steep_faces=False)
+    keep, _ = _core.segment_object(cloud, 0.27)
+    assert keep_before[on_end].mean() < 0.6, "the failure this step mends"
+    assert keep[on_end].mean() > 0.9
+    assert keep[~on_end].mean() > 0.99 and keep_before[~on_end].mean() > 0.99
 
 
 def test_free_space_separates_the_true_pose_from_a_turned_over_one(drill):

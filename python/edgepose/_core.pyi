@@ -28,6 +28,7 @@ def segment_object(
     max_shadowed_fraction: float = 0.5,
     min_component_fraction: float = 0.01,
     max_component_offset: float = 0.8,
+    steep_faces: bool = True,
 ) -> tuple[npt.NDArray[np.bool_], float]: ...
 def ray_alignment(centroid: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 def back_project(
@@ -58,6 +59,7 @@ def prepare_query(
     max_shadowed_fraction: float,
     min_component_fraction: float,
     max_component_offset: float,
+    steep_faces: bool,
 ) -> tuple[
     npt.NDArray[np.float32],
     float,

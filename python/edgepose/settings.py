@@ -35,6 +35,10 @@ class EstimateSettings:
     and behind it (a mask's spill onto the table or wall behind)."""
     max_shadowed_fraction: float = 0.5
     """... "most" being at least this fraction of its points."""
+    steep_faces: bool = True
+    """Put back the faces segmentation cut away because they are seen nearly
+    edge-on (sparse in space, dense in the image): dropped points whose depth
+    is a smooth ramp meeting the object's edge (``rust/src/segment.rs``)."""
     keypoints: int = 32
     """Observed keypoints (the map's first farthest-point samples) that verify candidates."""
 

@@ -165,6 +165,7 @@ def prepare_query(
         settings.max_shadowed_fraction,
         settings.min_component_fraction,
         settings.max_component_offset,
+        settings.steep_faces,
     )
     scene = None if frame is None else scene_around(*frame, points, model.diameter)
     return Query(points, spacing, centroid, r_corr, query_map, keypoints, scene)

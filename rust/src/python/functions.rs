@@ -196,7 +196,8 @@ fn top_k<'py>(
 /// `max_shadowed_fraction`): `(keep (N,) bool, spacing)`, spacing being the
 /// median nearest-neighbour distance in metres.
 #[pyfunction]
-#[pyo3(signature = (cloud, diameter, shadow_spacings = 4.0, max_shadowed_fraction = 0.5, min_component_fraction = 0.01, max_component_offset = 0.8))]
+#[pyo3(signature = (cloud, diameter, shadow_spacings = 4.0, max_shadowed_fraction = 0.5, min_component_fraction = 0.01, max_component_offset = 0.8, steep_faces = true))]
+#[allow(clippy::too_many_arguments)]
 fn segment_object<'py>(
     py: Python<'py>,
     cloud: PyReadonlyArray2<'py, f32>,
@@ -205,6 +206,7 @@ fn segment_object<'py>(
     max_shadowed_fraction: f64,
     min_component_fraction: f64,
     max_component_offset: f64,
+    steep_faces: bool,
 ) -> PyResult<(Bound<'py, PyArray1<bool>>, f64)> {
     guarded(|| {
         let c = triples(&cloud, "cloud").map_err(InvalidCloudError::new_err)?;
@@ -218,6 +220,7 @@ fn segment_object<'py>(
             max_shadowed_fraction,
             min_component_fraction,
             max_component_offset,
+            steep_faces,
             ..SegmentSettings::default()
         };
         let found = py.detach(|| segment(c, diameter, &settings));
@@ -294,7 +297,7 @@ fn clean_rows<T: numpy::Element + Copy + Into<f64> + Sync>(
 /// f64, map (map_points, 3) f32, keypoints (keypoints, 3) f32)`. `segment`
 /// false keeps every point (spacing 0).
 #[pyfunction]
-#[pyo3(signature = (points, diameter, scale, map_points, keypoints, min_points, segment, shadow_spacings, max_shadowed_fraction, min_component_fraction, max_component_offset))]
+#[pyo3(signature = (points, diameter, scale, map_points, keypoints, min_points, segment, shadow_spacings, max_shadowed_fraction, min_component_fraction, max_component_offset, steep_faces))]
 #[allow(clippy::too_many_arguments, clippy::type_complexity)]
 fn prepare_query<'py>(
     py: Python<'py>,
@@ -309,6 +312,7 @@ fn prepare_query<'py>(
     max_shadowed_fraction: f64,
     min_component_fraction: f64,
     max_component_offset: f64,
+    steep_faces: bool,
 ) -> PyResult<(
     Bound<'py, PyArray2<f32>>,
     f64,
@@ -333,6 +337,7 @@ fn prepare_query<'py>(
                 max_shadowed_fraction,
                 min_component_fraction,
                 max_component_offset,
+                steep_faces,
                 ..SegmentSettings::default()
             }),
             min_points,
