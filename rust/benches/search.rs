@@ -142,6 +142,15 @@ fn bench_search(c: &mut Criterion) {
     group.bench_function(format!("segment_{}_points", scene.len()), |b| {
         b.iter(|| segment(&scene, 0.12, &SegmentSettings::default()))
     });
+    // The same without step 3 (steep faces put back): what that step costs.
+    let without_steep_faces = SegmentSettings {
+        steep_faces: false,
+        ..SegmentSettings::default()
+    };
+    group.bench_function(
+        format!("segment_{}_points_no_steep_faces", scene.len()),
+        |b| b.iter(|| segment(&scene, 0.12, &without_steep_faces)),
+    );
     let spacing = segment(&scene, 0.12, &SegmentSettings::default()).spacing;
     let settings = ScoreSettings {
         inlier_distance: 0.012,
