@@ -91,8 +91,8 @@ pub struct SegmentSettings {
     pub ramp_noise: f64,
     /// ... or this many spacings, whichever is larger (quantised depth).
     pub ramp_min_noise_spacings: f64,
-    /// A kept image neighbour lies on the plane: within this many times
-    /// that tolerance of it in depth.
+    /// An image neighbour lies on the plane (a link, to the object or along
+    /// the face) within this many times that tolerance of it in depth.
     pub ramp_link: f64,
 }
 
@@ -564,36 +564,33 @@ impl CellGrid {
     /// The squared distance from `p` (point `i` of the binned points) to
     /// its nearest other point, when that lies within a cube's side.
     fn nearest_squared_distance(&self, i: usize, p: &Point3) -> Option<f32> {
-        let g = self.grid.coordinates(p)?;
-        let dims = self.grid.dims;
-        let limit = self.grid.cell * self.grid.cell;
         let mut best = f32::INFINITY;
-        for x in (g[0] - 1).max(0)..=(g[0] + 1).min(dims[0] - 1) {
-            for y in (g[1] - 1).max(0)..=(g[1] + 1).min(dims[1] - 1) {
-                let first = self.grid.flat([x, y, (g[2] - 1).max(0)]);
-                let last = self.grid.flat([x, y, (g[2] + 1).min(dims[2] - 1)]);
-                let (ra, rb) = (self.starts[first] as usize, self.starts[last + 1] as usize);
-                for k in ra..rb {
-                    let d = (self.xs[k] - p[0]).powi(2)
-                        + (self.ys[k] - p[1]).powi(2)
-                        + (self.zs[k] - p[2]).powi(2);
-                    if d < best && self.order[k] as usize != i {
-                        best = d;
-                    }
-                }
+        self.scan_around(p, |k, d| {
+            if d < best && self.order[k] as usize != i {
+                best = d;
             }
-        }
+        })?;
+        let limit = self.grid.cell * self.grid.cell;
         (best <= limit).then_some(best)
     }
 
     /// Visits every binned point within `within` (no more than a cube's
     /// side) of `p`, `p` itself included when binned.
     fn within(&self, p: &Point3, within: f32, mut visit: impl FnMut(usize)) {
-        let Some(g) = self.grid.coordinates(p) else {
-            return;
-        };
-        let dims = self.grid.dims;
         let limit = within * within;
+        self.scan_around(p, |k, d| {
+            if d <= limit {
+                visit(self.order[k] as usize);
+            }
+        });
+    }
+
+    /// `visit(k, squared distance to p)` for every binned point (its place
+    /// `k` in cube order) in the 27 cubes around `p`'s; `None` when `p` lies
+    /// outside the grid.
+    fn scan_around(&self, p: &Point3, mut visit: impl FnMut(usize, f32)) -> Option<()> {
+        let g = self.grid.coordinates(p)?;
+        let dims = self.grid.dims;
         for x in (g[0] - 1).max(0)..=(g[0] + 1).min(dims[0] - 1) {
             for y in (g[1] - 1).max(0)..=(g[1] + 1).min(dims[1] - 1) {
                 let first = self.grid.flat([x, y, (g[2] - 1).max(0)]);
@@ -602,12 +599,11 @@ impl CellGrid {
                     let d = (self.xs[k] - p[0]).powi(2)
                         + (self.ys[k] - p[1]).powi(2)
                         + (self.zs[k] - p[2]).powi(2);
-                    if d <= limit {
-                        visit(self.order[k] as usize);
-                    }
+                    visit(k, d);
                 }
             }
         }
+        Some(())
     }
 
     /// Visits every unordered pair of distinct points at most `within`
