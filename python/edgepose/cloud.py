@@ -32,7 +32,7 @@ _CHUNK_ROWS = 1 << 16
 #: A useful ``max_jump`` for ``cloud_from_depth`` on sensors with many
 #: flying pixels: a pixel whose depth differs from a neighbour's by more than
 #: this fraction of its depth is dropped (a depth discontinuity). It is *off*
-#: by default because it measured worse on the tuning set (benches/TUNING.md,
+#: by default because it measured worse on the tuning set (bench_pose.py --tune,
 #: 6 training shapes × 8 views): at 1.0–1.5 m with Kinect-like noise 56 % of
 #: poses correct with it against 85 % without (grazing surfaces lose their
 #: pixels), and with masks spilled by 5 px 85 % against 92 % (``estimate``'s

@@ -83,6 +83,12 @@ class Encoder:
         except Exception as e:  # onnxruntime raises its own untyped failures
             raise ModelFilesError(f"onnxruntime cannot load the networks in {models_dir}: {e}") from None
 
+    def judge(self, with_scene: bool) -> ConfidenceModel | None:
+        """The confidence model for a pose checked against the frame's depth
+        too (``with_scene``: its scene terms) or from the cloud alone; None
+        when these networks ship none."""
+        return self.scene_confidence if with_scene else self.confidence
+
     def encode(self, maps: np.ndarray, batch: int = 128) -> tuple[np.ndarray, np.ndarray]:
         """(B, M, 3) maps → codes (B, code_size) unit float32, spectra (B, spectrum_size) float32."""
         maps = np.ascontiguousarray(maps, dtype=np.float32)

@@ -250,7 +250,7 @@ def pose_from_query(
     pairs = settings.pair_poses if refine else 0
     observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
 
-    judge = encoder.confidence if query.scene is None else encoder.scene_confidence
+    judge = encoder.judge(with_scene=query.scene is not None)
 
     def judged(
         found: Candidates, result: Refined, loose: PoseScores, searches: int, flips: FlipMargin | None = None

@@ -15,7 +15,8 @@ from typing import Any
 @dataclass(frozen=True)
 class EstimateSettings:
     """Tuning of :func:`edgepose.estimate`. Tuned on training shapes and
-    seeds disjoint from the reported benchmark (``benches/TUNING.md``)."""
+    seeds disjoint from the reported benchmark
+    (``benches/bench_pose.py --tune`` writes their figures to ``benches/TUNING.md``)."""
 
     # --- prepare the query
     max_cloud_points: int = 2048

@@ -207,7 +207,7 @@ class Tracker:
             flip_fit_ratio=last.evidence.get("flip_fit_ratio", 0.0),
             scene_violation=scores.scene_violation[0],
         )
-        judge = self.encoder.confidence if scene is None else self.encoder.scene_confidence
+        judge = self.encoder.judge(with_scene=scene is not None)
         confidence = judge.probability(evidence) if judge else float("nan")
         elapsed = time.perf_counter() - t0
         return dataclasses.replace(
