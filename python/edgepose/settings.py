@@ -38,8 +38,9 @@ class EstimateSettings:
     """... "most" being at least this fraction of its points."""
     steep_faces: bool = True
     """Put back the faces segmentation cut away because they are seen nearly
-    edge-on (sparse in space, dense in the image): dropped points whose depth
-    is a smooth ramp meeting the object's edge (``rust/src/segment.rs``)."""
+    edge-on (sparse in space, dense in the image): dropped outliers and small
+    fragments whose depth is a smooth ramp meeting the object's edge; a whole
+    component dropped as spill stays out (``rust/src/segment.rs``)."""
     keypoints: int = 32
     """Observed keypoints (the map's first farthest-point samples) that verify candidates."""
 
