@@ -1,10 +1,11 @@
 //! Query hot path: cosine top-16 over 2,100 codes, verification of 16
-//! candidates by 32 keypoints, ICP, segmentation, scoring and point-pair
-//! votes. `cargo bench --bench search`.
+//! candidates by 32 keypoints, ICP, segmentation, scoring, the flip margin
+//! and point-pair votes. `cargo bench --bench search`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Rotation3, Unit, Vector3};
 
+use edgepose_core::flips::{flip_margin, FlipSettings};
 use edgepose_core::pairs::{PairSettings, PairTable};
 use edgepose_core::rng::SplitMix64;
 use edgepose_core::scoring::align_translations;
@@ -165,6 +166,51 @@ fn bench_search(c: &mut Criterion) {
     });
     group.bench_function("align_16_candidates_32_keypoints_3_iterations", |b| {
         b.iter(|| align_translations(&index, &keypoints, &candidates, 3, 0.012))
+    });
+    // The confidence's flip margin at estimate's settings (d = 0.12 m): the
+    // pose against itself turned half about each model axis, on 256 seen
+    // points, the two best rivals settled by 2 ICP iterations. Most of the
+    // `confidence` lap; the turned-pose check reads its rival.
+    let half_turns: Vec<Pose> = [Vector3::x_axis(), Vector3::y_axis(), Vector3::z_axis()]
+        .iter()
+        .map(|axis| Pose {
+            rotation: *Rotation3::from_axis_angle(axis, std::f64::consts::PI).matrix(),
+            translation: Vector3::zeros(),
+        })
+        .collect();
+    let observed: Vec<Point3> = seen
+        .iter()
+        .step_by(seen.len().div_ceil(256))
+        .copied()
+        .collect();
+    let flip_settings = FlipSettings {
+        align_iterations: 1,
+        align_distance: 0.012,
+        score: ScoreSettings {
+            inlier_distance: 0.0024,
+            ..settings
+        },
+        rival_distance: 0.012,
+        rival_points: 64,
+        symmetric: false,
+        settled: 2,
+        settle_iterations: 2,
+        settle_distance: 0.012,
+    };
+    let grid = DepthGrid::new(&seen, spacing, 2.0);
+    group.bench_function("flip_margin_3_half_turns_256_points", |b| {
+        b.iter(|| {
+            flip_margin(
+                &index,
+                &keypoints,
+                &observed,
+                &grid,
+                &truth,
+                1.0,
+                &half_turns,
+                &flip_settings,
+            )
+        })
     });
     // Point pairs: the model's table (built once per codebook, on the first
     // doubtful view), and the votes of 160 of the seen points (the default).
