@@ -290,11 +290,14 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
             hides[root] = 0;
         }
     }
+    // The size floor: a component smaller than this is a fragment.
+    let above_floor =
+        |root: usize| size[root] as f64 >= settings.min_component_fraction * size[largest] as f64;
     let keep_root: Vec<bool> = (0..n)
         .map(|root| {
             root == largest
                 || (lit(root)
-                    && size[root] as f64 >= settings.min_component_fraction * size[largest] as f64
+                    && above_floor(root)
                     && distance(centroid(root), anchor) <= settings.max_component_offset * diameter
                     && (hides[root] < settings.occluder_points
                         || size[root] as f64 >= settings.occluder_fraction * size[largest] as f64))
@@ -307,11 +310,7 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
         // fragments below the size floor. A whole component dropped for
         // lying in a shadow or in front of the object is a surface beside
         // it (a touching neighbour, the support plane seen steeply).
-        let fragment = |i: usize| {
-            !inlier[i]
-                || (size[root_of[i]] as f64)
-                    < settings.min_component_fraction * size[largest] as f64
-        };
+        let fragment = |i: usize| !inlier[i] || !above_floor(root_of[i]);
         rejoin_steep_faces(cloud, &mut keep, object, fragment, spacing, settings);
     }
     Segmentation { keep, spacing }
