@@ -63,6 +63,8 @@ def main() -> None:
     kept: dict[str, list] = {"load": [], "estimate": []}
 
     def keep(target: str, value: object) -> None:
+        """Keeps the first ``--keep`` inputs (with ``--keep`` <= ``--batch``,
+        all drawn in the warm-up, before the RSS is read)."""
         if len(kept[target]) < args.keep:
             kept[target].append(copy.deepcopy(value))
 
@@ -95,7 +97,7 @@ def main() -> None:
         print(f"{target}: {total} inputs, " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
     print(
         f"{elapsed:.0f} s, zero failures; RSS after warm-up {rss_start:.1f} MB, at end {rss_end:.1f} MB "
-        f"({100 * (rss_end - rss_start) / rss_start:+.1f} %; mostly hypothesis', see the replay)"
+        f"({100 * (rss_end - rss_start) / rss_start:+.1f} %; hypothesis' bookkeeping included)"
     )
     if args.replay > 0:
         replay(kept, damaged_path, codebook, args.replay)
