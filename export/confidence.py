@@ -220,6 +220,27 @@ def strict_thresholds(p: np.ndarray, y: np.ndarray) -> list[dict]:
     return rows
 
 
+def acceptance_demand(p: np.ndarray, y: np.ndarray, threshold: float = 0.5) -> dict:
+    """What accepting at most :data:`STRICT_WRONG_ACCEPTED` of the wrong
+    poses at ``threshold`` asks of the accepted ones: how many are accepted,
+    their mean confidence and share right now, and the share right they
+    would need (as a calibrated model's mean confidence over them)."""
+    accepted = p >= threshold
+    wrong = int((~y).sum())
+    row = {
+        "accepted": int(accepted.sum()),
+        "mean_confidence": float(p[accepted].mean()) if accepted.any() else float("nan"),
+        "right": float(y[accepted].mean()) if accepted.any() else float("nan"),
+        "right_needed": 1 - STRICT_WRONG_ACCEPTED * wrong / max(int(accepted.sum()), 1),
+    }
+    print(
+        f"stressed: at {threshold} {row['accepted']} poses accepted, mean confidence {row['mean_confidence']:.3f}, "
+        f"{row['right']:.1%} right; at most {STRICT_WRONG_ACCEPTED:.0%} of the {wrong} wrong ones accepted "
+        f"would need {row['right_needed']:.1%} right"
+    )
+    return row
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--views", type=int, default=8, help="views per object and stress level")
@@ -302,6 +323,7 @@ def main() -> None:
         if level != OTHER_OBJECT:
             report(str(level), held_out[levels == level], correct[levels == level])
     summary["stricter_thresholds"] = strict_thresholds(held_out[stressed], correct[stressed])
+    acceptance_demand(held_out[stressed], correct[stressed])
     if other.any():
         summary[OTHER_OBJECT] = {"views": int(other.sum()), "trusted": float((held_out[other] >= 0.5).mean())}
         print(

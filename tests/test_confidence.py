@@ -132,6 +132,18 @@ def test_the_fit_finds_the_lowest_threshold_that_lets_few_wrong_poses_through():
     assert rows[1]["wrong_accepted"] == pytest.approx(0.1) and rows[1]["correct_kept"] == 0.25
 
 
+def test_the_fit_says_how_right_the_accepted_poses_would_have_to_be():
+    from export.confidence import acceptance_demand
+
+    # 40 wrong poses; 100 accepted at 0.5, of which 90 right and 10 wrong.
+    p = np.array([0.9] * 100 + [0.2] * 30)
+    y = np.array([True] * 90 + [False] * 10 + [False] * 30)
+    row = acceptance_demand(p, y)
+    assert row["accepted"] == 100 and row["right"] == pytest.approx(0.9)
+    # ≤ 5 % of 40 wrong is 2 of the 100 accepted: they must be 98 % right.
+    assert row["right_needed"] == pytest.approx(0.98) and row["mean_confidence"] == pytest.approx(0.9)
+
+
 def test_each_pose_carries_the_strict_rule_of_the_model_that_judged_it(drill, tmp_path):
     """The fit's recorded stricter thresholds come back as the model's rules;
     every pose carries the ≤ 5 % one of its own model (clouds alone, or given
