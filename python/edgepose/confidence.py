@@ -171,7 +171,9 @@ class ConfidenceModel:
     )
     """The same model on the unstandardised terms: (feature, transform,
     weight, ((knot, weight), ...)) of each term and the intercept, as Python
-    floats (~20 µs a pose in plain Python; through numpy in situ, ~60 µs)."""
+    floats (~9 µs a pose in plain Python, 27 µs with a generator over the
+    hinges, 13 µs through padded numpy arrays, 2026-11-27; through numpy
+    inputs in situ, ~60 µs)."""
 
     def __post_init__(self) -> None:
         coefficients = iter((self.weights / self.scale).tolist())
@@ -196,7 +198,11 @@ class ConfidenceModel:
         terms, z = self._raw
         for name, term, c, hinges in terms:
             x = term(evidence[name])
-            z += c * x + sum(ck * (x - k) for k, ck in hinges if x > k)
+            bent = 0.0  # a loop, not sum() over a generator: ~3x faster
+            for k, ck in hinges:
+                if x > k:
+                    bent += ck * (x - k)
+            z += c * x + bent
         return 1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0)))
 
     def threshold_for(self, wrong_accepted: float) -> float:
