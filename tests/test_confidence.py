@@ -253,7 +253,7 @@ def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
     below 1), and each half-turned pose is beaten by the true one (margin
     < 0) and fits worse than that rival, the truth (fit ratio above 1)."""
     from edgepose.settings import DEFAULT_SETTINGS as S
-    from edgepose.stages import flip_margin, prepare_query, score_poses
+    from edgepose.stages import flip_margin, flip_rival, prepare_query, score_poses
     from edgepose.views import rotation_about
 
     mesh, codebook = drill
@@ -266,7 +266,7 @@ def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
         scores = score_poses(
             query, codebook, observed, R[None], t[None], S.hypothesis_inlier_distance * model.diameter, 0.0
         )
-        flips = flip_margin(query, codebook, R, t, scores, S)
+        flips = flip_margin(scores, flip_rival(query, codebook, R, t, S))
         assert flips.fits.shape == (1,)
         return flips.margin, float(scores.fit[0] / flips.fits[0])
 
@@ -288,7 +288,7 @@ def test_a_pose_turned_onto_itself_gives_way_to_its_refined_rival(drill):
     refined, is the truth and replaces it; the true pose keeps its place.
     With the check off (``turn_check_below`` ≤ −1) a clean estimate is the same."""
     from edgepose.settings import DEFAULT_SETTINGS as S
-    from edgepose.stages import Refined, flip_margin, prepare_query, score_poses, turned_pose
+    from edgepose.stages import Refined, flip_margin, flip_rival, prepare_query, score_poses, turned_pose
     from edgepose.views import rotation_about
 
     mesh, codebook = drill
@@ -303,7 +303,7 @@ def test_a_pose_turned_onto_itself_gives_way_to_its_refined_rival(drill):
             query, codebook, observed, R[None], t[None], S.hypothesis_inlier_distance * model.diameter, 0.0
         )
         result = Refined(0, R, t, scores, True)
-        return turned_pose(query, codebook, result, flip_margin(query, codebook, R, t, scores, S), S)
+        return turned_pose(query, codebook, result, flip_margin(scores, flip_rival(query, codebook, R, t, S)), S)
 
     R = view.T_cam_obj[:3, :3]
     t = view.T_cam_obj[:3, 3] + R @ model.centre  # model frame -> camera

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 
 import edgepose
@@ -272,3 +273,90 @@ def test_the_depth_frame_exposes_a_pose_out_of_the_occluders_shadow(drill):
         edgepose.estimate(view.cloud, codebook, depth=view.depth)
     with pytest.raises(edgepose.InvalidCloudError, match="2-D image"):
         edgepose.estimate(view.cloud, codebook, depth=view.depth[0], K=view.K)
+
+
+def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill, monkeypatch):
+    """The confidence's turned rival is found on the helper thread while ICP
+    polishes (``flip_rival_beside_polish``, the default) or after the
+    polish in the caller's thread: the same poses, confidences and
+    evidence, on whole and partly hidden views. estimate_many's parallel
+    objects never use the helper."""
+    from edgepose import stages
+
+    mesh, codebook = drill
+    threads: list[str] = []
+    real = stages.flip_rival
+
+    def recorded(*args, **kwargs):
+        threads.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(stages, "flip_rival", recorded)
+    settings = edgepose.EstimateSettings()
+    for seed, occluders in [(3, 0), (11, 2), (21, 3)]:
+        view = render_view(mesh, seed=seed, occluders=occluders)
+        threads.clear()
+        beside = edgepose.estimate(view.cloud, codebook, settings=settings)
+        on_helper = [name.startswith("edgepose-helper") for name in threads]
+        threads.clear()
+        after = edgepose.estimate(view.cloud, codebook, settings=settings.with_(flip_rival_beside_polish=False))
+        assert threads and not any(name.startswith("edgepose-helper") for name in threads)
+        if (os.cpu_count() or 1) > 1:
+            assert any(on_helper), "the rival was never found beside the polish"
+        np.testing.assert_array_equal(beside.matrix, after.matrix)
+        assert beside.confidence == after.confidence and beside.evidence == after.evidence
+
+
+def test_the_helper_thread_runs_one_job_at_a_time_and_hands_back_the_rest():
+    """A job submitted while the helper is busy comes back as None (the
+    caller runs it itself) instead of queueing behind another estimate's;
+    a failed job frees the helper and its error reaches the caller."""
+    from edgepose.stages import Helper
+
+    if (os.cpu_count() or 1) < 2:
+        assert Helper().submit(lambda: 1) is None
+        return
+    helper = Helper()
+    release = threading.Event()
+    first = helper.submit(lambda: release.wait(10) and threading.current_thread().name)
+    assert first is not None
+    assert helper.submit(lambda: 2) is None  # busy
+    release.set()
+    assert first.result(10).startswith("edgepose-helper")
+
+    def fails() -> None:
+        raise ValueError("a job's own error")
+
+    failed = helper.submit(fails)
+    assert failed is not None
+    with pytest.raises(ValueError, match="own error"):
+        failed.result(10)
+    again = helper.submit(lambda: 3)
+    assert again is not None and again.result(10) == 3
+
+
+def test_a_forked_child_gets_its_own_helper_thread():
+    """A process forked after the helper started (a multiprocessing pool,
+    Ray's workers) has no copy of the parent's thread: its first job starts
+    a new one instead of waiting forever on a thread that is not there."""
+    import multiprocessing
+
+    from edgepose.stages import HELPER
+
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("no helper thread on one core")
+    started = HELPER.submit(lambda: os.getpid())
+    assert started is not None and started.result(10) == os.getpid()
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(_helper_job_pid)
+        pid, ran_on = child.get(timeout=30)
+    assert pid != os.getpid() and ran_on == pid
+
+
+def _helper_job_pid() -> tuple[int, int]:
+    """(this process's id, the id the helper thread's job saw) in a forked child."""
+    from edgepose.stages import HELPER
+
+    job = HELPER.submit(lambda: os.getpid())
+    assert job is not None
+    return os.getpid(), job.result(10)

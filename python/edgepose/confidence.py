@@ -48,7 +48,8 @@ FEATURES: dict[str, str] = {
     "points explained within 0.02 d: 0 when the pose could slide along the seen surface, up to 1/3",
     "flip_margin": "inlier fraction minus free-space violation of the pose minus that of the pose turned by one of "
     "the model's doubtful turns (half turns about its principal axes, its near turns) and moved onto the view, "
-    "the one that screens best settled by 2 ICP iterations (if a different pose); 1 when none is",
+    "the one that screens best settled by 2 ICP iterations (if a different pose); the turns start from the pose "
+    "before its final ICP polish; 1 when none is",
     "rmse_ratio": "coarse ICP RMSE of the chosen hypothesis over the lowest of the rival hypotheses (more than "
     "0.1 d away) that competed with it for the pick; 0 when none competed",
     "flip_fit_ratio": "fit of the pose over that of the flip margin's best turned rival (settled), on the same "

@@ -100,6 +100,9 @@ def estimate_many(
         return query, laps, None
 
     pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+    # Objects searched in parallel already share the cores: each pose's
+    # flip rival is found after its polish, not on a helper thread beside it.
+    search_settings = settings.with_(flip_rival_beside_polish=False) if pool else settings
     each = pool.map if pool else map  # one worker: this thread, no pool
     try:
         started = time.perf_counter()
@@ -119,7 +122,7 @@ def estimate_many(
             now = time.perf_counter()  # its search starts now: the wait is not its time
             laps[i].start += now - laps[i].clock
             laps[i].clock = now
-            return pose_from_query(query, codebooks[i], encoder, refine, settings, laps[i], encoded[i])
+            return pose_from_query(query, codebooks[i], encoder, refine, search_settings, laps[i], encoded[i])
 
         poses = tuple(each(searched, range(len(objects))))
         timings["search"] = time.perf_counter() - started

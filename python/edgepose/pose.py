@@ -30,6 +30,7 @@ from edgepose.stages import (
     Refined,
     candidate_poses,
     flip_margin,
+    flip_rival,
     nearest_views,
     pair_poses,
     prepare_query,
@@ -98,7 +99,7 @@ class Pose:
     on a wrong pose costs more than looking again. The lowest threshold that
     let at most 5 % of the wrong poses through (:data:`edgepose.confidence.STRICT_WRONG_ACCEPTED`)
     on the fitting data's cross-validated stressed views, recorded with the
-    model that judged this pose (0.95 from a cloud alone, 0.96 given the
+    model that judged this pose (0.96 from a cloud alone and given the
     frame, with the shipped networks); NaN without one."""
     evidence: dict = field(default_factory=dict)
     """The scoring terms ``confidence`` is computed from, by name
@@ -264,7 +265,10 @@ def pose_from_query(
             else scores_at(query, codebook, result, settings.hypothesis_inlier_distance, settings)
         )
         if flips is None:
-            flips = flip_margin(query, codebook, result.R, result.t, tight, settings)
+            rival = (
+                result.rival if result.rival is not None else flip_rival(query, codebook, result.R, result.t, settings)
+            )
+            flips = flip_margin(tight, rival)
         evidence = evidence_of(
             inlier_fraction=tight.inlier_fraction[0],
             loose_inlier_fraction=loose.inlier_fraction[0],

@@ -172,6 +172,13 @@ class EstimateSettings:
     As shipped, there 68.6 → 71.6 % of poses correct; on fresh seeds (from
     778600) 58.8 → 60.7 % (16 right, 5 wrong), and on the six tuning parts
     95.0 → 96.0 % (4 right, none wrong; the check ran on 9 % of views)."""
+    flip_rival_beside_polish: bool = True
+    """Find the confidence's turned rival of the pose (its flip margin's,
+    :func:`edgepose.stages.flip_rival`) on a helper thread while ICP
+    polishes the pose, instead of after the polish: the same rival either
+    way (it starts from the pose before the polish), sooner where a second
+    core is free. :func:`edgepose.estimate_many`, whose objects already
+    share the cores, finds it after."""
     min_icp_inliers: int = 16
     """An ICP result with fewer inlier pairs is not trusted."""
     subsample_seed: int = 1

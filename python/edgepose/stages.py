@@ -12,7 +12,8 @@ step 7), each reusable on its own (the exporter's evaluation, benchmarks):
 4. :func:`score_poses` — how well each pose explains the view: truncated
    keypoint distances to the model and free-space violations (Rust);
 5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
-   distinct candidates, scored again; the best one is polished.
+   distinct candidates, scored again; the best one is polished (while a
+   helper thread finds its turned rival for the confidence, :func:`polished`).
 
 Poses are model frame → camera (the model frame is the mesh frame shifted by
 the model's centre); units are metres. Every tuning value lives in
@@ -21,9 +22,13 @@ the model's centre); units are metres. Every tuning value lives in
 
 from __future__ import annotations
 
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import cached_property
-from typing import NamedTuple
+from functools import cached_property, partial
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 
@@ -33,6 +38,8 @@ from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.views import rotation_about_z
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,6 +257,21 @@ def nearest_views(codebook: Codebook, rotations: np.ndarray, translations: np.nd
     return np.argmax(towards_camera @ codebook.viewpoints.directions.T, axis=1).astype(np.intp)
 
 
+class FlipRival(NamedTuple):
+    """:func:`flip_rival`'s outcome: a pose's best turned rival, if any."""
+
+    net: float
+    """Its inlier fraction minus free-space (and scene) violations on the
+    hypotheses' observed points; NaN when there is none."""
+    rotations: np.ndarray
+    """(R, 3, 3) that rival (model frame → camera), R = 1, or none (R = 0) ..."""
+    translations: np.ndarray
+    """(R, 3) ... metres ..."""
+    fits: np.ndarray
+    """(R,) ... and its mean truncated distance to the hypotheses' observed
+    points, metres (as :attr:`PoseScores.fit`)."""
+
+
 class FlipMargin(NamedTuple):
     """:func:`flip_margin`'s outcome."""
 
@@ -264,32 +286,28 @@ class FlipMargin(NamedTuple):
     points, metres (as :attr:`PoseScores.fit`)."""
 
 
-def flip_margin(
-    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, scores: PoseScores, settings: EstimateSettings
-) -> FlipMargin:
-    """How much better pose ``(R, t)`` (model frame → camera, metres), with
-    its ``scores`` on the hypotheses' observed points, explains the view
-    than itself turned by each of the codebook's doubtful turns (half turns
-    about the model's principal axes, its near turns), moved onto the view
-    and (the best few) settled by ICP: the mistakes a search makes on a
-    near-symmetric view (a banana end for end, a box whose telling details
-    are hidden).
-    Inlier fraction minus free-space (and scene) violations, the pose's minus the best
-    turned one's that is a different pose (symmetries aside); 1 when none
-    is. Near 0 or below when the view cannot tell the object from its flip.
-    One call to the Rust core (``rust/src/flips.rs``)."""
+def flip_rival(query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings) -> FlipRival:
+    """The best of pose ``(R, t)`` (model frame → camera, metres) turned by
+    each of the codebook's doubtful turns (half turns about the model's
+    principal axes, its near turns), moved onto the view and (the best few)
+    settled by ICP, that is a different pose (symmetries aside): the
+    mistakes a search makes on a near-symmetric view (a banana end for end,
+    a box whose telling details are hidden). One call to the Rust core
+    (``rust/src/flips.rs``), which lets go of the GIL: it may run on another
+    thread (:func:`refine_hypotheses` runs it beside the polish)."""
     d = codebook.model.diameter
     turn_rotations, turn_translations = codebook.doubtful_turns
     # Each turned pose is moved (not turned) so the query's keypoints land on
     # the model, as the candidates are (~0.05 ms); only the best few are
-    # then settled by ICP (settling all of them: ~3× the cost).
+    # then settled by ICP (settling all of them: ~3× the cost). Given an own
+    # net of 0, the core's margin is minus the rival's net.
     margin, rotations, translations, fits = codebook.index.flip_margin(
         query.keypoints,
         query.sample(settings.hypothesis_points, settings.subsample_seed),
         query.free_space,
         np.ascontiguousarray(R, dtype=np.float64),
         np.ascontiguousarray(t, dtype=np.float64),
-        float(scores.net[0]),
+        0.0,
         turn_rotations,
         turn_translations,
         FLIP_ALIGN_ITERATIONS,
@@ -304,7 +322,17 @@ def flip_margin(
         FLIP_SETTLE_ITERATIONS,
         settings.icp_max_distance * d,
     )
-    return FlipMargin(margin, rotations, translations, fits)
+    return FlipRival(-margin if len(rotations) else float("nan"), rotations, translations, fits)
+
+
+def flip_margin(scores: PoseScores, rival: FlipRival) -> FlipMargin:
+    """How much better a pose with ``scores`` (on the hypotheses' observed
+    points) explains the view than its turned ``rival``
+    (:func:`flip_rival`): inlier fraction minus violations, the pose's minus
+    the rival's; 1 when there is none. Near 0 or below when the view cannot
+    tell the object from its flip."""
+    margin = float(scores.net[0] - rival.net) if len(rival.rotations) else 1.0
+    return FlipMargin(margin, rival.rotations, rival.translations, rival.fits)
 
 
 def turned_pose(
@@ -324,8 +352,10 @@ def turned_pose(
     icp = codebook.index.refine(
         coarse, flips.rotations, flips.translations, settings.hypothesis_iterations, settings.icp_max_distance * d
     )
+    rival = None  # unpolished: the flip margin's rival is found from the pose itself
     if settings.icp_iterations > 0 and icp.inliers[0] >= settings.min_icp_inliers and np.isfinite(icp.rmse[0]):
-        icp = polish(query, codebook, icp.rotations, icp.translations, settings)
+        fine, rival = polished(query, codebook, icp.rotations[0], icp.translations[0], settings)
+        icp = fine if fine is not None else icp
     R, t = icp.rotations, icp.translations
     if not usable_icp(query, codebook, icp.inliers, icp.rmse, t, settings)[0]:
         return None
@@ -333,7 +363,7 @@ def turned_pose(
     gain = float(scores.net[0] - result.scores.net[0])
     if gain <= settings.turn_switch_gain:
         return None
-    return result._replace(R=R[0], t=t[0], scores=scores, refined=True, margin=gain)
+    return result._replace(R=R[0], t=t[0], scores=scores, refined=True, margin=gain, rival=rival)
 
 
 def score_poses(
@@ -382,6 +412,11 @@ class Refined(NamedTuple):
     that competed with it (explaining nearly as many points, within the
     free-space margin): near 1 when the pick between different poses was a
     toss-up, 0 when no rival competed."""
+    rival: FlipRival | None = None
+    """The pose's best turned rival (:func:`flip_rival`), found from the
+    pose before its polish (:func:`polished`); None when none was found
+    there (a pose stage 5 did not refine, a turned pose not polished): the
+    confidence then finds it from the pose itself."""
 
 
 def refine_hypotheses(
@@ -431,6 +466,9 @@ def refine_hypotheses(
     margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
     competitors = rivals & competing
     rmse_ratio = float(rmse[pick] / rmse[competitors].min()) if competitors.any() else 0.0
+    if ("fine", int(starts[pick])) not in cache:
+        cache["fine", int(starts[pick])] = polished(query, codebook, hyp_R[pick], hyp_t[pick], settings)
+    fine_icp, rival = cache["fine", int(starts[pick])]
     best = Refined(
         int(starts[pick]),
         hyp_R[pick],
@@ -439,13 +477,9 @@ def refine_hypotheses(
         True,
         margin,
         rmse_ratio,
+        rival,
     )
-    if settings.icp_iterations > 0:
-        if ("fine", best.candidate) not in cache:
-            cache["fine", best.candidate] = polish(
-                query, codebook, hyp_R[pick : pick + 1], hyp_t[pick : pick + 1], settings
-            )
-        fine_icp = cache["fine", best.candidate]
+    if fine_icp is not None:
         fine_R, fine_t = fine_icp.rotations, fine_icp.translations
         if usable_icp(query, codebook, fine_icp.inliers, fine_icp.rmse, fine_t, settings)[0]:
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
@@ -473,6 +507,62 @@ FLIP_ALIGN_ITERATIONS = 1
 #: 0.966), its lap 0.59 → 0.43 ms (median, 288 tuning-part estimates).
 FLIP_SETTLED_RIVALS = 1
 FLIP_SETTLE_ITERATIONS = 2
+
+
+class Helper:
+    """One helper thread per process that runs a job beside the caller's
+    work (the Rust core lets go of the GIL, so both use a core). A job
+    submitted while it is busy (estimates from several threads at once) is
+    not queued: :meth:`submit` returns None and the caller runs it itself."""
+
+    def __init__(self) -> None:
+        self._setup = threading.Lock()
+        self._pool: ThreadPoolExecutor | None = None
+        self._free = threading.Lock()
+        self._pid = 0
+
+    def submit(self, job: Callable[[], T]) -> Future[T] | None:
+        """``job()`` started on the helper thread, or None when it is busy or
+        this machine has a single core."""
+        if (os.cpu_count() or 1) < 2:
+            return None
+        with self._setup:
+            if self._pid != os.getpid():  # the first job, or a forked child's: its own thread
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="edgepose-helper")
+                self._free, self._pid = threading.Lock(), os.getpid()
+        if not self._free.acquire(blocking=False):
+            return None
+        free = self._free
+
+        def run() -> T:
+            try:
+                return job()
+            finally:
+                free.release()
+
+        assert self._pool is not None
+        return self._pool.submit(run)
+
+
+#: Runs :func:`flip_rival` beside the polish (``EstimateSettings.flip_rival_beside_polish``).
+HELPER = Helper()
+
+
+def polished(
+    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings
+) -> tuple[_core.IcpResults | None, FlipRival]:
+    """Pose ``(R, t)``'s final ICP :func:`polish` (None when
+    ``settings.icp_iterations`` is 0) and its turned rival
+    (:func:`flip_rival`, from the pose before the polish: the rival is
+    settled by ICP anyway), found on the helper thread while the polish runs
+    when one is free (``settings.flip_rival_beside_polish``): the same
+    rival either way."""
+    find_rival = partial(flip_rival, query, codebook, R, t, settings)
+    if settings.icp_iterations == 0:
+        return None, find_rival()
+    pending = HELPER.submit(find_rival) if settings.flip_rival_beside_polish else None
+    icp = polish(query, codebook, R[None], t[None], settings)
+    return icp, pending.result() if pending else find_rival()
 
 
 def polish(
