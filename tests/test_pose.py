@@ -279,8 +279,9 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
     """The confidence's turned rival is found on the helper thread while ICP
     polishes (``flip_rival_beside_polish``, the default) or after the
     polish in the caller's thread: the same poses, confidences and
-    evidence, on whole and partly hidden views. estimate_many's parallel
-    objects never use the helper."""
+    evidence, on whole and partly hidden views. The confidence uses that
+    rival: it never looks for one of the refined pose itself."""
+    from edgepose import pose as pose_module
     from edgepose import stages
 
     mesh, codebook = drill
@@ -291,7 +292,11 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
         threads.append(threading.current_thread().name)
         return real(*args, **kwargs)
 
+    def not_wanted(*args, **kwargs):
+        raise AssertionError("the confidence looked for the refined pose's rival itself")
+
     monkeypatch.setattr(stages, "flip_rival", recorded)
+    monkeypatch.setattr(pose_module, "flip_rival", not_wanted)
     settings = edgepose.EstimateSettings()
     for seed, occluders in [(3, 0), (11, 2), (21, 3)]:
         view = render_view(mesh, seed=seed, occluders=occluders)
@@ -343,8 +348,8 @@ def test_a_forked_child_gets_its_own_helper_thread():
 
     from edgepose.stages import HELPER
 
-    if (os.cpu_count() or 1) < 2:
-        pytest.skip("no helper thread on one core")
+    if (os.cpu_count() or 1) < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no helper thread on one core, no fork on this platform")
     started = HELPER.submit(lambda: os.getpid())
     assert started is not None and started.result(10) == os.getpid()
     with multiprocessing.get_context("fork").Pool(1) as pool:

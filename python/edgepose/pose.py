@@ -266,7 +266,9 @@ def pose_from_query(
         )
         if flips is None:
             rival = (
-                result.rival if result.rival is not None else flip_rival(query, codebook, result.R, result.t, settings)
+                result.rival.get()
+                if result.rival is not None
+                else flip_rival(query, codebook, result.R, result.t, settings)
             )
             flips = flip_margin(tight, rival)
         evidence = evidence_of(

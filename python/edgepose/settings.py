@@ -177,8 +177,8 @@ class EstimateSettings:
     :func:`edgepose.stages.flip_rival`) on a helper thread while ICP
     polishes the pose, instead of after the polish: the same rival either
     way (it starts from the pose before the polish), sooner where a second
-    core is free. :func:`edgepose.estimate_many`, whose objects already
-    share the cores, finds it after."""
+    core is free. :func:`edgepose.estimate_many`, when its objects share
+    the cores on several threads, finds it after."""
     min_icp_inliers: int = 16
     """An ICP result with fewer inlier pairs is not trusted."""
     subsample_seed: int = 1

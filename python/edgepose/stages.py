@@ -352,7 +352,7 @@ def turned_pose(
     icp = codebook.index.refine(
         coarse, flips.rotations, flips.translations, settings.hypothesis_iterations, settings.icp_max_distance * d
     )
-    rival = None  # unpolished: the flip margin's rival is found from the pose itself
+    rival: RivalSearch | None = None  # unpolished: the flip margin's rival is found from the pose itself
     if settings.icp_iterations > 0 and icp.inliers[0] >= settings.min_icp_inliers and np.isfinite(icp.rmse[0]):
         fine, rival = polished(query, codebook, icp.rotations[0], icp.translations[0], settings)
         icp = fine if fine is not None else icp
@@ -412,11 +412,11 @@ class Refined(NamedTuple):
     that competed with it (explaining nearly as many points, within the
     free-space margin): near 1 when the pick between different poses was a
     toss-up, 0 when no rival competed."""
-    rival: FlipRival | None = None
-    """The pose's best turned rival (:func:`flip_rival`), found from the
-    pose before its polish (:func:`polished`); None when none was found
-    there (a pose stage 5 did not refine, a turned pose not polished): the
-    confidence then finds it from the pose itself."""
+    rival: RivalSearch | None = None
+    """The search for the pose's best turned rival (:func:`flip_rival`)
+    from the pose before its polish (:func:`polished`); None for a pose
+    that was not polished there (stage 5 did not refine it, a turned pose
+    left unpolished): the confidence then finds it from the pose itself."""
 
 
 def refine_hypotheses(
@@ -435,8 +435,9 @@ def refine_hypotheses(
     ICP. None when no ICP found enough points.
 
     ``icp_cache`` (a dict kept between calls on the same query and the same
-    leading candidates, with the same ICP settings) holds each start's ICP
-    results, so a second, wider search does not repeat the first one's."""
+    leading candidates, with the same settings) holds each start's ICP
+    results and the chosen one's polish and rival search, so a second,
+    wider search does not repeat the first one's."""
     cache: dict = {} if icp_cache is None else icp_cache
     d = codebook.model.diameter
     coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
@@ -516,21 +517,20 @@ class Helper:
     not queued: :meth:`submit` returns None and the caller runs it itself."""
 
     def __init__(self) -> None:
+        self._forget()
+        # A forked child (a multiprocessing pool, Ray's workers) has no copy
+        # of the thread, and a lock held at fork time would stay held.
+        os.register_at_fork(after_in_child=self._forget)
+
+    def _forget(self) -> None:
         self._setup = threading.Lock()
         self._pool: ThreadPoolExecutor | None = None
         self._free = threading.Lock()
-        self._pid = 0
 
     def submit(self, job: Callable[[], T]) -> Future[T] | None:
-        """``job()`` started on the helper thread, or None when it is busy or
-        this machine has a single core."""
-        if (os.cpu_count() or 1) < 2:
-            return None
-        with self._setup:
-            if self._pid != os.getpid():  # the first job, or a forked child's: its own thread
-                self._pool = ThreadPoolExecutor(1, thread_name_prefix="edgepose-helper")
-                self._free, self._pid = threading.Lock(), os.getpid()
-        if not self._free.acquire(blocking=False):
+        """``job()`` started on the helper thread, or None when it is busy,
+        this machine has a single core or the interpreter is shutting down."""
+        if (os.cpu_count() or 1) < 2 or not self._free.acquire(blocking=False):
             return None
         free = self._free
 
@@ -540,29 +540,54 @@ class Helper:
             finally:
                 free.release()
 
-        assert self._pool is not None
-        return self._pool.submit(run)
+        try:
+            with self._setup:
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(1, thread_name_prefix="edgepose-helper")
+            return self._pool.submit(run)
+        except RuntimeError:  # "cannot schedule new futures after interpreter shutdown"
+            free.release()
+            return None
 
 
-#: Runs :func:`flip_rival` beside the polish (``EstimateSettings.flip_rival_beside_polish``).
+#: Runs :func:`flip_rival` beside the polish (:class:`RivalSearch`).
 HELPER = Helper()
+
+
+class RivalSearch:
+    """:func:`flip_rival` of one pose, started on the helper thread (it runs
+    while the caller polishes the pose and scores the result) or, when the
+    helper is busy or off, run in the caller's thread on first :meth:`get`:
+    the same rival either way, and none is computed for a pose that is
+    dropped before the confidence asks."""
+
+    def __init__(self, find: Callable[[], FlipRival], beside: bool) -> None:
+        self._find = find
+        self._pending = HELPER.submit(find) if beside else None
+        self._rival: FlipRival | None = None
+
+    def get(self) -> FlipRival:
+        """The rival (waiting for the helper thread if it is still on it)."""
+        if self._rival is None:
+            self._rival = self._pending.result() if self._pending is not None else self._find()
+        return self._rival
 
 
 def polished(
     query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings
-) -> tuple[_core.IcpResults | None, FlipRival]:
+) -> tuple[_core.IcpResults | None, RivalSearch]:
     """Pose ``(R, t)``'s final ICP :func:`polish` (None when
-    ``settings.icp_iterations`` is 0) and its turned rival
+    ``settings.icp_iterations`` is 0) and the search for its turned rival
     (:func:`flip_rival`, from the pose before the polish: the rival is
-    settled by ICP anyway), found on the helper thread while the polish runs
-    when one is free (``settings.flip_rival_beside_polish``): the same
-    rival either way."""
-    find_rival = partial(flip_rival, query, codebook, R, t, settings)
+    settled by ICP anyway), started on the helper thread before the polish
+    when ``settings.flip_rival_beside_polish`` (:class:`RivalSearch`)."""
+    rival = RivalSearch(
+        partial(flip_rival, query, codebook, R, t, settings),
+        settings.flip_rival_beside_polish and settings.icp_iterations > 0,
+    )
     if settings.icp_iterations == 0:
-        return None, find_rival()
-    pending = HELPER.submit(find_rival) if settings.flip_rival_beside_polish else None
-    icp = polish(query, codebook, R[None], t[None], settings)
-    return icp, pending.result() if pending else find_rival()
+        return None, rival
+    return polish(query, codebook, R[None], t[None], settings), rival
 
 
 def polish(
