@@ -1,0 +1,128 @@
+"""What the confidence costs an estimate, with the flip rival found on the
+helper thread beside the final ICP polish and after it
+(``EstimateSettings.flip_rival_beside_polish``), in one process.
+
+    .venv/bin/python benches/bench_confidence_cost.py [--repeats 9]
+
+Views: eight training CAD parts (never YCB; six of them ``bench_pose.py
+--tune``'s, plus two near-symmetric ones, where the flip margin matters),
+each scaled to a diameter drawn in 8–25 cm, 3 views at each of four
+levels (clean, visible40, spill5, occluded30_spill5), seeds from 777900.
+Each view is estimated ``--repeats`` times in each mode, the modes
+interleaved; per view the median of each is kept. Printed: the median over
+views of the total, of the ``refine_hypotheses`` and ``confidence`` laps,
+of the polish (:func:`edgepose.stages.polished`) and of the wait for the
+rival (:meth:`edgepose.stages.RivalSearch.get`), and the per-view paired
+difference of the totals. Both modes give the same poses and confidences
+(checked). The machine is noisy: compare the modes, not runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import edgepose
+import numpy as np
+from edgepose import stages
+from edgepose.encoder import default_encoder
+from edgepose.eval.benchmark import load_object
+from edgepose.model import load_model, read_mesh
+from edgepose.settings import DEFAULT_SETTINGS
+
+CAD = Path(__file__).resolve().parents[2] / "shared" / "data" / "train_shapes" / "cad"
+PARTS = [
+    "bunny.ply",
+    "fandisk.obj",
+    "teapot.stl",
+    "suzanne.ply",
+    "idler_riser.STL",
+    "busted.STL",
+    "box.STL",
+    "angle_block.STL",
+]
+LEVELS = ["clean", "visible40", "spill5", "occluded30_spill5"]
+SEED_BASE = 777_900
+MODES = {
+    "beside": DEFAULT_SETTINGS.with_(flip_rival_beside_polish=True),
+    "after": DEFAULT_SETTINGS.with_(flip_rival_beside_polish=False),
+}
+
+
+class Clock:
+    """Seconds spent in a wrapped function, summed per estimate."""
+
+    def __init__(self) -> None:
+        self.spent = 0.0
+
+    def wrap(self, owner: object, name: str) -> None:
+        real = getattr(owner, name)
+
+        def timed(*args, **kwargs):
+            started = time.perf_counter()
+            try:
+                return real(*args, **kwargs)
+            finally:
+                self.spent += time.perf_counter() - started
+
+        setattr(owner, name, timed)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=9, help="estimates of each view in each mode")
+    args = parser.parse_args()
+    encoder = default_encoder()
+    views = []
+    for k, part in enumerate(PARTS):
+        mesh = read_mesh(CAD / part, scale=1.0)
+        mesh.apply_scale(1.0 / float(np.linalg.norm(mesh.extents)))
+        target = np.random.default_rng(SEED_BASE + k).uniform(0.08, 0.25)
+        mesh.apply_scale(target / load_model(mesh, scale=1.0).diameter)
+        codebook = edgepose.build_codebook(mesh, encoder=encoder)
+        for level in LEVELS:
+            seeds = [SEED_BASE + k * 100 + i for i in range(3)]
+            bench = load_object(mesh, seeds, name=part, symmetric=codebook.symmetry.symmetric, stress=level)
+            views += [(codebook, cloud) for cloud in bench.clouds]
+    polish, wait = Clock(), Clock()
+    polish.wrap(stages, "polished")
+    wait.wrap(stages.RivalSearch, "get")
+    per_view: dict[str, dict[str, list[float]]] = {m: {} for m in MODES}
+    for codebook, cloud in views:
+        runs: dict[str, dict[str, list[float]]] = {m: {} for m in MODES}
+        poses = {}
+        for r in range(args.repeats):
+            for mode in list(MODES) if r % 2 else list(MODES)[::-1]:
+                polish.spent = wait.spent = 0.0
+                pose = edgepose.estimate(cloud, codebook, encoder=encoder, settings=MODES[mode])
+                poses[mode] = pose
+                measured = {
+                    "total": pose.timings["total"],
+                    "refine_hypotheses": pose.timings["refine_hypotheses"],
+                    "confidence": pose.timings.get("confidence", 0.0),
+                    "polished": polish.spent,
+                    "rival wait": wait.spent,
+                }
+                for key, seconds in measured.items():
+                    runs[mode].setdefault(key, []).append(seconds)
+        a, b = poses["beside"], poses["after"]
+        if not (np.array_equal(a.matrix, b.matrix) and a.confidence == b.confidence):
+            raise SystemExit("the modes gave different poses: the rival must not depend on the thread")
+        for mode in MODES:
+            for key, seconds in runs[mode].items():
+                per_view[mode].setdefault(key, []).append(float(np.median(seconds)))
+    print(f"{len(views)} views × {args.repeats} estimates per mode; medians over views, ms")
+    print(f"{'':<18}" + "".join(f"{m:>10}" for m in MODES))
+    for key in per_view["beside"]:
+        print(f"{key:<18}" + "".join(f"{1e3 * np.median(per_view[m][key]):>10.3f}" for m in MODES))
+    paired = 1e3 * (np.array(per_view["beside"]["total"]) - np.array(per_view["after"]["total"]))
+    print(
+        f"total, beside minus after, per view: median {np.median(paired):+.3f} ms"
+        f" (IQR {np.quantile(paired, 0.25):+.3f}..{np.quantile(paired, 0.75):+.3f}),"
+        f" beside faster on {np.mean(paired < 0):.0%} of views"
+    )
+
+
+if __name__ == "__main__":
+    main()
