@@ -267,8 +267,8 @@ def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
             query, codebook, observed, R[None], t[None], S.hypothesis_inlier_distance * model.diameter, 0.0
         )
         flips = flip_margin(scores, flip_rival(query, codebook, R, t, S))
-        assert flips.fits.shape == (1,)
-        return flips.margin, float(scores.fit[0] / flips.fits[0])
+        assert flips.rival.fits.shape == (1,)
+        return flips.margin, float(scores.fit[0] / flips.rival.fits[0])
 
     R = view.T_cam_obj[:3, :3]
     t = view.T_cam_obj[:3, 3] + R @ model.centre  # model frame -> camera

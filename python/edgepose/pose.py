@@ -284,7 +284,7 @@ def pose_from_query(
             observed_extent=observed_extent,
             translation_constraint=tight.translation_constraint[0],
             flip_margin=flips.margin,
-            flip_fit_ratio=float(tight.fit[0] / max(flips.fits[0], 1e-12)) if len(flips.fits) else 0.0,
+            flip_fit_ratio=float(tight.fit[0] / max(flips.rival.fits[0], 1e-12)) if len(flips.rival.fits) else 0.0,
             rmse_ratio=result.rmse_ratio,
             scene_violation=loose.scene_violation[0],
         )

@@ -277,13 +277,8 @@ class FlipMargin(NamedTuple):
 
     margin: float
     """How much better the pose explains the view than its best turned rival; 1 when there is none."""
-    rotations: np.ndarray
-    """(R, 3, 3) that rival (model frame → camera), R = 1, or none (R = 0) ..."""
-    translations: np.ndarray
-    """(R, 3) ... metres ..."""
-    fits: np.ndarray
-    """(R,) ... and its mean truncated distance to the hypotheses' observed
-    points, metres (as :attr:`PoseScores.fit`)."""
+    rival: FlipRival
+    """That rival (none: no rotations)."""
 
 
 def flip_rival(query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings) -> FlipRival:
@@ -332,7 +327,7 @@ def flip_margin(scores: PoseScores, rival: FlipRival) -> FlipMargin:
     the rival's; 1 when there is none. Near 0 or below when the view cannot
     tell the object from its flip."""
     margin = float(scores.net[0] - rival.net) if len(rival.rotations) else 1.0
-    return FlipMargin(margin, rival.rotations, rival.translations, rival.fits)
+    return FlipMargin(margin, rival)
 
 
 def turned_pose(
@@ -345,12 +340,16 @@ def turned_pose(
     that gain over ``result``, its ``rmse_ratio`` the search's.
     :func:`edgepose.estimate` asks when the flip margin is below
     ``settings.turn_check_below``."""
-    if not result.refined or len(flips.rotations) == 0:
+    if not result.refined or len(flips.rival.rotations) == 0:
         return None
     d = codebook.model.diameter
     coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
     icp = codebook.index.refine(
-        coarse, flips.rotations, flips.translations, settings.hypothesis_iterations, settings.icp_max_distance * d
+        coarse,
+        flips.rival.rotations,
+        flips.rival.translations,
+        settings.hypothesis_iterations,
+        settings.icp_max_distance * d,
     )
     rival: RivalSearch | None = None  # unpolished: the flip margin's rival is found from the pose itself
     if settings.icp_iterations > 0 and icp.inliers[0] >= settings.min_icp_inliers and np.isfinite(icp.rmse[0]):
@@ -467,11 +466,12 @@ def refine_hypotheses(
     margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
     competitors = rivals & competing
     rmse_ratio = float(rmse[pick] / rmse[competitors].min()) if competitors.any() else 0.0
-    if ("fine", int(starts[pick])) not in cache:
-        cache["fine", int(starts[pick])] = polished(query, codebook, hyp_R[pick], hyp_t[pick], settings)
-    fine_icp, rival = cache["fine", int(starts[pick])]
+    chosen = int(starts[pick])
+    if ("fine", chosen) not in cache:
+        cache["fine", chosen] = polished(query, codebook, hyp_R[pick], hyp_t[pick], settings)
+    fine_icp, rival = cache["fine", chosen]
     best = Refined(
-        int(starts[pick]),
+        chosen,
         hyp_R[pick],
         hyp_t[pick],
         PoseScores(*(s[pick : pick + 1] for s in scores)),
