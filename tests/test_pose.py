@@ -358,6 +358,42 @@ def test_a_forked_child_gets_its_own_helper_thread():
     assert pid != os.getpid() and ran_on == pid
 
 
+#: What a forked child estimates: set in the parent before it forks.
+_FORKED: dict = {}
+
+
+def test_a_forked_child_estimates_and_builds_codebooks():
+    """A process forked after the parent used the core's worker threads
+    (Python's multiprocessing on Linux, a robot stack's workers) has none of
+    them: the core starts its own there (``rust/src/threads.rs``) instead of
+    waiting forever on threads that are not there, as rayon's global pool
+    would. The child's pose is the parent's, bit for bit."""
+    import multiprocessing
+
+    import trimesh
+
+    if "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    mesh = trimesh.creation.box((0.12, 0.07, 0.03))
+    codebook = edgepose.build_codebook(mesh)
+    view = render_view(mesh, seed=4)
+    pose = edgepose.estimate(view.cloud, codebook)  # the parent's threads run
+    _FORKED.update(mesh=mesh, cloud=view.cloud, codebook=codebook)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        matrix, confidence, rebuilt = pool.apply_async(_estimate_in_child).get(timeout=120)
+    np.testing.assert_array_equal(matrix, pose.matrix)
+    assert confidence == pose.confidence
+    assert rebuilt == codebook.model.diameter
+
+
+def _estimate_in_child() -> tuple[np.ndarray, float, float]:
+    """In a forked child: ``_FORKED``'s pose matrix and confidence, and the
+    diameter of its mesh's codebook built afresh."""
+    pose = edgepose.estimate(_FORKED["cloud"], _FORKED["codebook"])
+    rebuilt = edgepose.build_codebook(_FORKED["mesh"])
+    return pose.matrix, pose.confidence, rebuilt.model.diameter
+
+
 def _helper_job_pid() -> tuple[int, int]:
     """(this process's id, the id the helper thread's job saw) in a forked child."""
     from edgepose.stages import HELPER

@@ -6,6 +6,7 @@
 
 use rayon::prelude::*;
 
+use crate::threads;
 use crate::Point3;
 
 /// Indices (`centres × k`, row-major) of the `k` nearest points of `map` to
@@ -83,10 +84,12 @@ pub fn neighbours_of_maps(points: &[Point3], m: usize, centres: usize, k: usize)
         // One map (a query): waking the thread pool would cost more than the work.
         return map_neighbours(points, centres, k);
     }
-    let per_map: Vec<Vec<u32>> = points
-        .par_chunks(m)
-        .map(|map| map_neighbours(map, centres, k))
-        .collect();
+    let per_map: Vec<Vec<u32>> = threads::install(|| {
+        points
+            .par_chunks(m)
+            .map(|map| map_neighbours(map, centres, k))
+            .collect()
+    });
     per_map.concat()
 }
 

@@ -15,6 +15,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::pairs::{pair_poses, PairSettings, PairTable, VotedPose};
+use crate::threads;
 use crate::Point3;
 
 /// The model's kd-tree: leaves of 8 points, not kiddo's default 32. ICP,
@@ -388,28 +389,30 @@ impl CandidateLists {
                 }
             }
         }
-        let lists: Vec<Vec<u16>> = (0..count)
-            .into_par_iter()
-            .map(|c| {
-                if !near[c] {
-                    return Vec::new();
-                }
-                let centre = grid.centre(c);
-                let r = (tree.nearest_one::<SquaredEuclidean>(&centre).distance as f64).sqrt();
-                if r > band {
-                    return Vec::new();
-                }
-                // Slack for rounding: a few more points, never one fewer.
-                let reach = (r + 2.0 * half_diagonal) * (1.0 + 1e-5) + 1e-6 * cell as f64;
-                let mut items: Vec<u16> = tree
-                    .within_unsorted::<SquaredEuclidean>(&centre, (reach * reach) as f32)
-                    .into_iter()
-                    .map(|nn| nn.item as u16) // `short`: every index fits
-                    .collect();
-                items.sort_unstable();
-                items
-            })
-            .collect();
+        let lists: Vec<Vec<u16>> = threads::install(|| {
+            (0..count)
+                .into_par_iter()
+                .map(|c| {
+                    if !near[c] {
+                        return Vec::new();
+                    }
+                    let centre = grid.centre(c);
+                    let r = (tree.nearest_one::<SquaredEuclidean>(&centre).distance as f64).sqrt();
+                    if r > band {
+                        return Vec::new();
+                    }
+                    // Slack for rounding: a few more points, never one fewer.
+                    let reach = (r + 2.0 * half_diagonal) * (1.0 + 1e-5) + 1e-6 * cell as f64;
+                    let mut items: Vec<u16> = tree
+                        .within_unsorted::<SquaredEuclidean>(&centre, (reach * reach) as f32)
+                        .into_iter()
+                        .map(|nn| nn.item as u16) // `short`: every index fits
+                        .collect();
+                    items.sort_unstable();
+                    items
+                })
+                .collect()
+        });
         let mut starts = Vec::with_capacity(count + 1);
         starts.push(0u32);
         let mut items = Vec::with_capacity(lists.iter().map(Vec::len).sum());
@@ -455,21 +458,24 @@ impl CellIndex {
         // From the cell's centre, minus half its diagonal (and some slack
         // for rounding), to the nearest model point.
         let half_diagonal = 0.5 * 3f64.sqrt() * grid.cell as f64;
-        let (clearance, anchor) = (0..count)
-            .into_par_iter()
-            .map(|c| {
-                if points.is_empty() {
-                    return (0.0, 0);
-                }
-                let nn = tree.nearest_one::<SquaredEuclidean>(&grid.centre(c));
-                if starts[c + 1] > starts[c] {
-                    return (0.0, nn.item);
-                }
-                let nearest = (nn.distance as f64).sqrt();
-                let clearance = (nearest - half_diagonal) * (1.0 - 1e-5) - 1e-6 * grid.cell as f64;
-                (clearance.max(0.0) as f32, nn.item)
-            })
-            .unzip();
+        let (clearance, anchor) = threads::install(|| {
+            (0..count)
+                .into_par_iter()
+                .map(|c| {
+                    if points.is_empty() {
+                        return (0.0, 0);
+                    }
+                    let nn = tree.nearest_one::<SquaredEuclidean>(&grid.centre(c));
+                    if starts[c + 1] > starts[c] {
+                        return (0.0, nn.item);
+                    }
+                    let nearest = (nn.distance as f64).sqrt();
+                    let clearance =
+                        (nearest - half_diagonal) * (1.0 - 1e-5) - 1e-6 * grid.cell as f64;
+                    (clearance.max(0.0) as f32, nn.item)
+                })
+                .unzip()
+        });
         Self {
             grid,
             margin: margin * (1.0 - 1e-6) - 1e-9,

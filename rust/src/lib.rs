@@ -18,6 +18,7 @@ pub mod sampling;
 pub mod scoring;
 pub mod search;
 pub mod segment;
+pub mod threads;
 pub mod views;
 pub mod visibility;
 

@@ -7,6 +7,7 @@ use rayon::prelude::*;
 
 use crate::model::StandardModel;
 use crate::sampling::farthest_point_sample;
+use crate::threads;
 use crate::views::Rotation;
 use crate::visibility::visible_mask;
 use crate::Point3;
@@ -71,10 +72,12 @@ pub fn view_map(model: &StandardModel, rotation: &Rotation, m: usize) -> ViewMap
 
 /// Maps of every viewpoint, computed in parallel.
 pub fn compute_maps(model: &StandardModel, rotations: &[Rotation], m: usize) -> Maps {
-    let per_view: Vec<ViewMap> = rotations
-        .par_iter()
-        .map(|r| view_map(model, r, m))
-        .collect();
+    let per_view: Vec<ViewMap> = threads::install(|| {
+        rotations
+            .par_iter()
+            .map(|r| view_map(model, r, m))
+            .collect()
+    });
     let mut maps = Maps {
         points: Vec::with_capacity(rotations.len() * m),
         centroids: Vec::with_capacity(rotations.len()),

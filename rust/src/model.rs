@@ -10,6 +10,7 @@ use rayon::prelude::*;
 use crate::error::GeometryError;
 use crate::rng::SplitMix64;
 use crate::sampling::farthest_point_sample;
+use crate::threads;
 use crate::Point3;
 
 /// Surface samples drawn per kept point before farthest-point thinning.
@@ -216,20 +217,22 @@ fn orient_outward(points: &[Point3], normals: &mut [Point3]) {
 
 /// Largest pairwise distance, exact (O(n²), parallel; ~10 ms for 4,096 points).
 pub fn diameter(points: &[Point3]) -> f64 {
-    points
-        .par_iter()
-        .enumerate()
-        .map(|(i, p)| {
-            points[i + 1..]
-                .iter()
-                .map(|q| {
-                    let d = sub3f(*p, *q);
-                    dot(d, d)
-                })
-                .fold(0.0f32, f32::max)
-        })
-        .reduce(|| 0.0, f32::max)
-        .sqrt() as f64
+    threads::install(|| {
+        points
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                points[i + 1..]
+                    .iter()
+                    .map(|q| {
+                        let d = sub3f(*p, *q);
+                        dot(d, d)
+                    })
+                    .fold(0.0f32, f32::max)
+            })
+            .reduce(|| 0.0, f32::max)
+    })
+    .sqrt() as f64
 }
 
 /// Mean distance from each point to its nearest other point.
@@ -239,14 +242,16 @@ pub fn mean_nearest_neighbour_distance(points: &[Point3]) -> f64 {
     }
     let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(points);
     let two = NonZero::new(2).expect("2 is non-zero");
-    let distances: Vec<f64> = points
-        .par_iter()
-        .map(|p| {
-            let found = tree.nearest_n::<SquaredEuclidean>(p, two);
-            // The nearest hit is the point itself (distance 0), or a duplicate.
-            found.last().map_or(0.0, |nn| (nn.distance as f64).sqrt())
-        })
-        .collect();
+    let distances: Vec<f64> = threads::install(|| {
+        points
+            .par_iter()
+            .map(|p| {
+                let found = tree.nearest_n::<SquaredEuclidean>(p, two);
+                // The nearest hit is the point itself (distance 0), or a duplicate.
+                found.last().map_or(0.0, |nn| (nn.distance as f64).sqrt())
+            })
+            .collect()
+    });
     // Summed in order, not by rayon's reduction tree (which depends on how the
     // work was split): the same model gives the same spacing to the last bit.
     distances.iter().sum::<f64>() / points.len() as f64

@@ -17,6 +17,7 @@ use rayon::prelude::*;
 
 use crate::index::Pose;
 use crate::sampling::farthest_point_sample;
+use crate::threads;
 use crate::Point3;
 
 /// The model's points that take part (its first farthest-point samples:
@@ -111,18 +112,20 @@ impl PairTable {
             .flat_map(|p| pts.iter().map(move |q| (p - q).norm()))
             .fold(0.0, f64::max);
         let distance_step = (diameter / DISTANCE_BINS as f64).max(1e-9);
-        let mut keyed: Vec<(u32, u16, u16)> = (0..m)
-            .into_par_iter()
-            .flat_map_iter(|i| {
-                let (pts, nrm, to_x) = (&pts, &nrm, &to_x);
-                (0..m).filter(move |&j| j != i).filter_map(move |j| {
-                    feature_key(&pts[i], &nrm[i], &pts[j], &nrm[j], distance_step).map(|key| {
-                        let turn = turn_bin(angle_about_x(&to_x[i], &pts[i], &pts[j]));
-                        (key, i as u16, turn)
+        let mut keyed: Vec<(u32, u16, u16)> = threads::install(|| {
+            (0..m)
+                .into_par_iter()
+                .flat_map_iter(|i| {
+                    let (pts, nrm, to_x) = (&pts, &nrm, &to_x);
+                    (0..m).filter(move |&j| j != i).filter_map(move |j| {
+                        feature_key(&pts[i], &nrm[i], &pts[j], &nrm[j], distance_step).map(|key| {
+                            let turn = turn_bin(angle_about_x(&to_x[i], &pts[i], &pts[j]));
+                            (key, i as u16, turn)
+                        })
                     })
                 })
-            })
-            .collect();
+                .collect()
+        });
         keyed.sort_by_key(|e| e.0); // stable: (i, j) order within a key, as collected
         let mut starts = vec![0u32; FEATURE_KEYS + 1];
         let mut entries = Vec::new();
@@ -169,60 +172,65 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
         .step_by(settings.reference_stride.max(1))
         .collect();
     // Reference points vote on their own: in parallel, in order.
-    let voted: Vec<VotedPose> = references
-        .par_iter()
-        .map_init(
-            || vec![0u32; m * ROTATION_BINS],
-            |accumulator, &r| {
-                accumulator.fill(0);
-                let to_x = rotation_to_x(&normals[r]);
-                for i in 0..scene.len() {
-                    if i == r || (scene[i] - scene[r]).norm() > max_distance {
-                        continue;
-                    }
-                    let Some(key) = feature_key(
-                        &scene[r],
-                        &normals[r],
-                        &scene[i],
-                        &normals[i],
-                        table.distance_step,
-                    ) else {
-                        continue;
-                    };
-                    let (first, end) = (table.starts[key as usize], table.starts[key as usize + 1]);
-                    let scene_turn = turn_bin(angle_about_x(&to_x, &scene[r], &scene[i])) as usize;
-                    for &(model_ref, model_turn) in &table.entries[first as usize..end as usize] {
-                        // The turn taking the model pair onto the scene pair, in bins.
-                        let mut bin = scene_turn + ROTATION_BINS - model_turn as usize;
-                        if bin >= ROTATION_BINS {
-                            bin -= ROTATION_BINS;
+    let voted: Vec<VotedPose> = threads::install(|| {
+        references
+            .par_iter()
+            .map_init(
+                || vec![0u32; m * ROTATION_BINS],
+                |accumulator, &r| {
+                    accumulator.fill(0);
+                    let to_x = rotation_to_x(&normals[r]);
+                    for i in 0..scene.len() {
+                        if i == r || (scene[i] - scene[r]).norm() > max_distance {
+                            continue;
                         }
-                        accumulator[model_ref as usize * ROTATION_BINS + bin] += 1;
-                    }
-                }
-                best_cells(accumulator, settings.peaks_per_reference)
-                    .into_iter()
-                    .map(|(cell, votes)| {
-                        let (model_ref, bin) = (cell / ROTATION_BINS, cell % ROTATION_BINS);
-                        let turn = bin as f64 * std::f64::consts::TAU / ROTATION_BINS as f64;
-                        // s = to_x_sᵀ · Rx(turn) · to_x_m · (m − m_ref) + s_ref
-                        let rotation = to_x.inverse()
-                            * Rotation3::from_axis_angle(&Vector3::x_axis(), turn)
-                            * table.to_x[model_ref];
-                        let translation = scene[r] - rotation * table.points[model_ref];
-                        VotedPose {
-                            pose: Pose {
-                                rotation: *rotation.matrix(),
-                                translation,
-                            },
-                            votes: votes as f64,
+                        let Some(key) = feature_key(
+                            &scene[r],
+                            &normals[r],
+                            &scene[i],
+                            &normals[i],
+                            table.distance_step,
+                        ) else {
+                            continue;
+                        };
+                        let (first, end) =
+                            (table.starts[key as usize], table.starts[key as usize + 1]);
+                        let scene_turn =
+                            turn_bin(angle_about_x(&to_x, &scene[r], &scene[i])) as usize;
+                        for &(model_ref, model_turn) in &table.entries[first as usize..end as usize]
+                        {
+                            // The turn taking the model pair onto the scene pair, in bins.
+                            let mut bin = scene_turn + ROTATION_BINS - model_turn as usize;
+                            if bin >= ROTATION_BINS {
+                                bin -= ROTATION_BINS;
+                            }
+                            accumulator[model_ref as usize * ROTATION_BINS + bin] += 1;
                         }
-                    })
-                    .collect::<Vec<_>>()
-            },
-        )
-        .flatten()
-        .collect();
+                    }
+                    best_cells(accumulator, settings.peaks_per_reference)
+                        .into_iter()
+                        .map(|(cell, votes)| {
+                            let (model_ref, bin) = (cell / ROTATION_BINS, cell % ROTATION_BINS);
+                            let turn = bin as f64 * std::f64::consts::TAU / ROTATION_BINS as f64;
+                            // s = to_x_sᵀ · Rx(turn) · to_x_m · (m − m_ref) + s_ref
+                            let rotation = to_x.inverse()
+                                * Rotation3::from_axis_angle(&Vector3::x_axis(), turn)
+                                * table.to_x[model_ref];
+                            let translation = scene[r] - rotation * table.points[model_ref];
+                            VotedPose {
+                                pose: Pose {
+                                    rotation: *rotation.matrix(),
+                                    translation,
+                                },
+                                votes: votes as f64,
+                            }
+                        })
+                        .collect::<Vec<_>>()
+                },
+            )
+            .flatten()
+            .collect()
+    });
     cluster(voted, settings, table.distance_step * DISTANCE_BINS as f64)
 }
 

@@ -6,6 +6,7 @@ use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
 use rayon::prelude::*;
 
 use crate::index::{ModelIndex, Pose};
+use crate::threads;
 use crate::Point3;
 
 /// ICP has converged when an update's rotation (radians) and translation
@@ -55,7 +56,7 @@ impl ModelIndex {
     ) -> Vec<IcpResult> {
         let icp = |start: &Pose| self.refine(cloud, *start, max_iterations, max_distance);
         if starts.len() >= PARALLEL_STARTS {
-            starts.par_iter().map(icp).collect()
+            threads::install(|| starts.par_iter().map(icp).collect())
         } else {
             starts.iter().map(icp).collect()
         }

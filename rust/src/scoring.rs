@@ -28,6 +28,7 @@ use rayon::prelude::*;
 
 use crate::index::{ModelIndex, Pose};
 use crate::query::Pinhole;
+use crate::threads;
 use crate::Point3;
 
 /// The frame's depth around the object (the whole scene there, not only the
@@ -302,7 +303,7 @@ const PARALLEL_FROM: usize = 64;
 /// more (each pose's result is its own, so the results are the same).
 fn each_pose<T: Send>(poses: &[Pose], f: impl Fn(&Pose) -> T + Sync + Send) -> Vec<T> {
     if poses.len() >= PARALLEL_FROM {
-        poses.par_iter().with_min_len(16).map(f).collect()
+        threads::install(|| poses.par_iter().with_min_len(16).map(f).collect())
     } else {
         poses.iter().map(f).collect()
     }

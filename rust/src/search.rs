@@ -4,6 +4,7 @@
 use rayon::prelude::*;
 
 use crate::index::{ModelIndex, Pose};
+use crate::threads;
 use crate::Point3;
 
 /// The `k` codes most similar to `query` (dot product of unit codes = cosine),
@@ -60,26 +61,28 @@ pub fn point_distances(
     poses: &[Pose],
     along_normal: bool,
 ) -> Vec<f64> {
-    poses
-        .par_iter()
-        .flat_map_iter(|pose| {
-            let to_model = pose.inverse();
-            points.iter().map(move |p| {
-                let m = to_model.apply(p);
-                let m = [m.x as f32, m.y as f32, m.z as f32];
-                let (i, squared) = index.nearest(&m);
-                if along_normal {
-                    let (q, n) = (index.points()[i], index.normals()[i]);
-                    (0..3)
-                        .map(|k| ((m[k] - q[k]) * n[k]) as f64)
-                        .sum::<f64>()
-                        .abs()
-                } else {
-                    (squared as f64).sqrt()
-                }
+    threads::install(|| {
+        poses
+            .par_iter()
+            .flat_map_iter(|pose| {
+                let to_model = pose.inverse();
+                points.iter().map(move |p| {
+                    let m = to_model.apply(p);
+                    let m = [m.x as f32, m.y as f32, m.z as f32];
+                    let (i, squared) = index.nearest(&m);
+                    if along_normal {
+                        let (q, n) = (index.points()[i], index.normals()[i]);
+                        (0..3)
+                            .map(|k| ((m[k] - q[k]) * n[k]) as f64)
+                            .sum::<f64>()
+                            .abs()
+                    } else {
+                        (squared as f64).sqrt()
+                    }
+                })
             })
-        })
-        .collect()
+            .collect()
+    })
 }
 
 #[cfg(test)]

@@ -62,9 +62,11 @@ fn _panic_for_tests(py: Python<'_>, message: String, where_: &str) -> PyResult<(
         "detached" => py.detach(|| -> PyResult<()> { panic!("{message}") }),
         "rayon" => {
             py.detach(|| {
-                (0..64)
-                    .into_par_iter()
-                    .for_each(|i| assert!(i < 63, "{message}"))
+                crate::threads::install(|| {
+                    (0..64)
+                        .into_par_iter()
+                        .for_each(|i| assert!(i < 63, "{message}"))
+                })
             });
             Ok(())
         }

@@ -1,0 +1,101 @@
+//! The worker threads of the core's parallel loops: one rayon pool per
+//! process.
+//!
+//! Not rayon's global pool: a process forked after using it (Python's
+//! `multiprocessing` on Linux, a robot stack's worker processes) inherits
+//! the pool's bookkeeping but none of its threads, and its first parallel
+//! loop would wait forever for them. [`install`] notices that it runs in a
+//! new process (its id changed) and starts a pool of its own there.
+
+use std::ptr;
+use std::sync::atomic::{AtomicPtr, Ordering};
+
+use rayon::{ThreadPool, ThreadPoolBuilder};
+
+/// A pool and the process that started it.
+struct ProcessPool {
+    pid: u32,
+    pool: ThreadPool,
+}
+
+static POOL: AtomicPtr<ProcessPool> = AtomicPtr::new(ptr::null_mut());
+
+/// This process's pool, started on first use (as many threads as rayon's
+/// global pool would have: `RAYON_NUM_THREADS`, else the cores this process
+/// may use).
+pub fn pool() -> &'static ThreadPool {
+    let pid = std::process::id();
+    loop {
+        let current = POOL.load(Ordering::Acquire);
+        // SAFETY: a published pool is never freed (below), so the pointer
+        // stays valid for the life of the process.
+        if let Some(found) = unsafe { current.as_ref() } {
+            if found.pid == pid {
+                return &found.pool;
+            }
+        }
+        let fresh = Box::into_raw(Box::new(ProcessPool {
+            pid,
+            pool: ThreadPoolBuilder::new()
+                .thread_name(|i| format!("edgepose-core-{i}"))
+                .build()
+                .expect("cannot start the core's worker threads"),
+        }));
+        match POOL.compare_exchange(current, fresh, Ordering::AcqRel, Ordering::Acquire) {
+            // The pool replaced (if any) is a parent process's: its threads
+            // are not in this one, so it is left as it is, never dropped.
+            Ok(_) => {
+                // SAFETY: just published, never freed.
+                return unsafe { &(*fresh).pool };
+            }
+            Err(_) => {
+                // Another thread published one first: use that (next turn).
+                // SAFETY: `fresh` was never published; its threads are ours.
+                drop(unsafe { Box::from_raw(fresh) });
+            }
+        }
+    }
+}
+
+/// Runs `op` in this process's pool, so that its parallel loops use the
+/// pool's threads (the caller waits); in the current pool when the caller
+/// already is a pool's worker.
+pub fn install<R: Send>(op: impl FnOnce() -> R + Send) -> R {
+    if rayon::current_thread_index().is_some() {
+        op()
+    } else {
+        pool().install(op)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rayon::prelude::*;
+
+    #[test]
+    fn loops_run_on_the_process_pool() {
+        let names: Vec<String> = install(|| {
+            (0..64)
+                .into_par_iter()
+                .map(|_| std::thread::current().name().unwrap_or("").to_string())
+                .collect()
+        });
+        assert!(
+            names.iter().all(|n| n.starts_with("edgepose-core-")),
+            "{names:?}"
+        );
+        assert!(std::ptr::eq(pool(), pool()));
+    }
+
+    #[test]
+    fn inside_another_pool_its_threads_are_used() {
+        let other = ThreadPoolBuilder::new()
+            .num_threads(3)
+            .thread_name(|i| format!("other-{i}"))
+            .build()
+            .unwrap();
+        let name = other.install(|| install(|| std::thread::current().name().unwrap().to_string()));
+        assert!(name.starts_with("other-"), "{name}");
+    }
+}
