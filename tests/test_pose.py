@@ -276,86 +276,64 @@ def test_the_depth_frame_exposes_a_pose_out_of_the_occluders_shadow(drill):
 
 
 def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill, monkeypatch):
-    """The confidence's turned rival is found on the helper thread while ICP
-    polishes (``flip_rival_beside_polish``, the default) or after the
-    polish in the caller's thread: the same poses, confidences and
-    evidence, on whole and partly hidden views. The confidence uses that
-    rival: it never looks for one of the refined pose itself."""
+    """The confidence's turned rival is found by the Rust core beside the
+    polish (``flip_rival_beside_polish``, the default: one core call does
+    both) or after the polish in the caller's thread: the same poses,
+    confidences and evidence, on whole and partly hidden views. The
+    confidence uses stage 5's rival: it never looks for one of the refined
+    pose itself."""
     from edgepose import pose as pose_module
     from edgepose import stages
 
     mesh, codebook = drill
-    threads: list[str] = []
-    real = stages.flip_rival
+    calls: list[str] = []
+    for name in ("flip_rival", "polished_beside_flip_rival"):
+        real = getattr(stages, name)
 
-    def recorded(*args, **kwargs):
-        threads.append(threading.current_thread().name)
-        return real(*args, **kwargs)
+        def recorded(*args, _real=real, _name=name, **kwargs):
+            calls.append(_name)
+            return _real(*args, **kwargs)
+
+        monkeypatch.setattr(stages, name, recorded)
 
     def not_wanted(*args, **kwargs):
         raise AssertionError("the confidence looked for the refined pose's rival itself")
 
-    monkeypatch.setattr(stages, "flip_rival", recorded)
     monkeypatch.setattr(pose_module, "flip_rival", not_wanted)
     settings = edgepose.EstimateSettings()
     for seed, occluders in [(3, 0), (11, 2), (21, 3)]:
         view = render_view(mesh, seed=seed, occluders=occluders)
-        threads.clear()
+        calls.clear()
         beside = edgepose.estimate(view.cloud, codebook, settings=settings)
-        on_helper = [name.startswith("edgepose-helper") for name in threads]
-        threads.clear()
+        assert "polished_beside_flip_rival" in calls and "flip_rival" not in calls, calls
+        calls.clear()
         after = edgepose.estimate(view.cloud, codebook, settings=settings.with_(flip_rival_beside_polish=False))
-        assert threads and not any(name.startswith("edgepose-helper") for name in threads)
-        if (os.cpu_count() or 1) > 1:
-            assert any(on_helper), "the rival was never found beside the polish"
+        assert "flip_rival" in calls and "polished_beside_flip_rival" not in calls, calls
         np.testing.assert_array_equal(beside.matrix, after.matrix)
         assert beside.confidence == after.confidence and beside.evidence == after.evidence
 
 
-def test_the_helper_thread_runs_one_job_at_a_time_and_hands_back_the_rest():
-    """A job submitted while the helper is busy comes back as None (the
-    caller runs it itself) instead of queueing behind another estimate's;
-    a failed job frees the helper and its error reaches the caller."""
-    from edgepose.stages import Helper
+def test_the_polish_beside_the_flip_rival_is_the_polish_alone(drill):
+    """One core call that polishes a pose and finds its rival gives what
+    the two calls give on their own, bit for bit."""
+    from edgepose import stages
 
-    if (os.cpu_count() or 1) < 2:
-        assert Helper().submit(lambda: 1) is None
-        return
-    helper = Helper()
-    release = threading.Event()
-    first = helper.submit(lambda: release.wait(10) and threading.current_thread().name)
-    assert first is not None
-    assert helper.submit(lambda: 2) is None  # busy
-    release.set()
-    assert first.result(10).startswith("edgepose-helper")
-
-    def fails() -> None:
-        raise ValueError("a job's own error")
-
-    failed = helper.submit(fails)
-    assert failed is not None
-    with pytest.raises(ValueError, match="own error"):
-        failed.result(10)
-    again = helper.submit(lambda: 3)
-    assert again is not None and again.result(10) == 3
-
-
-def test_a_forked_child_gets_its_own_helper_thread():
-    """A process forked after the helper started (a multiprocessing pool,
-    Ray's workers) has no copy of the parent's thread: its first job starts
-    a new one instead of waiting forever on a thread that is not there."""
-    import multiprocessing
-
-    from edgepose.stages import HELPER
-
-    if (os.cpu_count() or 1) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        pytest.skip("no helper thread on one core, no fork on this platform")
-    started = HELPER.submit(lambda: os.getpid())
-    assert started is not None and started.result(10) == os.getpid()
-    with multiprocessing.get_context("fork").Pool(1) as pool:
-        child = pool.apply_async(_helper_job_pid)
-        pid, ran_on = child.get(timeout=30)
-    assert pid != os.getpid() and ran_on == pid
+    mesh, codebook = drill
+    settings = edgepose.EstimateSettings()
+    for seed in (5, 6):
+        view = render_view(mesh, seed=seed, occluders=2)
+        query = prepare_query(view.cloud, codebook, settings=settings)
+        # The true pose in the model frame (the mesh frame shifted by its
+        # centre), 4 mm off: the polish has work to do.
+        R = np.ascontiguousarray(view.T_cam_obj[:3, :3])
+        t = view.T_cam_obj[:3, 3] + R @ codebook.model.centre + 0.004
+        icp, rival = stages.polished_beside_flip_rival(query, codebook, R, t, settings)
+        alone = stages.polish(query, codebook, R[None], t[None], settings)
+        for name in ("rotations", "translations", "inliers", "rmse"):
+            np.testing.assert_array_equal(getattr(icp, name), getattr(alone, name))
+        found = stages.flip_rival(query, codebook, R, t, settings)
+        np.testing.assert_array_equal(rival.rotations, found.rotations)
+        assert rival.net == found.net or (np.isnan(rival.net) and np.isnan(found.net))
 
 
 #: What a forked child estimates: set in the parent before it forks.
@@ -392,12 +370,3 @@ def _estimate_in_child() -> tuple[np.ndarray, float, float]:
     pose = edgepose.estimate(_FORKED["cloud"], _FORKED["codebook"])
     rebuilt = edgepose.build_codebook(_FORKED["mesh"])
     return pose.matrix, pose.confidence, rebuilt.model.diameter
-
-
-def _helper_job_pid() -> tuple[int, int]:
-    """(this process's id, the id the helper thread's job saw) in a forked child."""
-    from edgepose.stages import HELPER
-
-    job = HELPER.submit(lambda: os.getpid())
-    assert job is not None
-    return os.getpid(), job.result(10)

@@ -101,7 +101,7 @@ def estimate_many(
 
     pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
     # Objects searched in parallel already share the cores: each pose's
-    # flip rival is found after its polish, not on a helper thread beside it.
+    # flip rival is found after its polish, not on another core beside it.
     search_settings = settings.with_(flip_rival_beside_polish=False) if pool else settings
     each = pool.map if pool else map  # one worker: this thread, no pool
     try:

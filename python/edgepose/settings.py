@@ -174,11 +174,12 @@ class EstimateSettings:
     95.0 → 96.0 % (4 right, none wrong; the check ran on 9 % of views)."""
     flip_rival_beside_polish: bool = True
     """Find the confidence's turned rival of the pose (its flip margin's,
-    :func:`edgepose.stages.flip_rival`) on a helper thread while ICP
-    polishes the pose, instead of after the polish: the same rival either
-    way (it starts from the pose before the polish), sooner where a second
-    core is free. :func:`edgepose.estimate_many`, when its objects share
-    the cores on several threads, finds it after."""
+    :func:`edgepose.stages.flip_rival`) on one of the Rust core's threads
+    while ICP polishes the pose in the caller's, instead of after the
+    polish: the same rival either way (it starts from the pose before the
+    polish), sooner where a second core is free.
+    :func:`edgepose.estimate_many`, when its objects share the cores on
+    several threads, finds it after."""
     min_icp_inliers: int = 16
     """An ICP result with fewer inlier pairs is not trusted."""
     subsample_seed: int = 1

@@ -12,8 +12,8 @@ step 7), each reusable on its own (the exporter's evaluation, benchmarks):
 4. :func:`score_poses` — how well each pose explains the view: truncated
    keypoint distances to the model and free-space violations (Rust);
 5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
-   distinct candidates, scored again; the best one is polished (while a
-   helper thread finds its turned rival for the confidence, :func:`polished`).
+   distinct candidates, scored again; the best one is polished (while
+   another core finds its turned rival for the confidence, :func:`polished`).
 
 Poses are model frame → camera (the model frame is the mesh frame shifted by
 the model's centre); units are metres. Every tuning value lives in
@@ -22,13 +22,10 @@ the model's centre); units are metres. Every tuning value lives in
 
 from __future__ import annotations
 
-import os
-import threading
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property, partial
-from typing import NamedTuple, TypeVar
+from typing import NamedTuple
 
 import numpy as np
 
@@ -38,8 +35,6 @@ from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.views import rotation_about_z
-
-T = TypeVar("T")
 
 
 @dataclass(frozen=True, eq=False)
@@ -288,15 +283,33 @@ def flip_rival(query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, s
     settled by ICP, that is a different pose (symmetries aside): the
     mistakes a search makes on a near-symmetric view (a banana end for end,
     a box whose telling details are hidden). One call to the Rust core
-    (``rust/src/flips.rs``), which lets go of the GIL: it may run on another
-    thread (:func:`refine_hypotheses` runs it beside the polish)."""
+    (``rust/src/flips.rs``), which lets go of the GIL."""
+    return _flip_rival_core(query, codebook, R, t, settings)[0]
+
+
+def polished_beside_flip_rival(
+    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings
+) -> tuple[_core.IcpResults, FlipRival]:
+    """Pose ``(R, t)``'s :func:`polish` and its :func:`flip_rival`, in one
+    call to the Rust core: the polish in the caller's thread while the
+    rival is searched for on one of the core's threads
+    (``rust/src/threads.rs``), each as it would be on its own."""
+    rival, icp = _flip_rival_core(query, codebook, R, t, settings, polish=True)
+    assert icp is not None
+    return icp, rival
+
+
+def _flip_rival_core(
+    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings, polish: bool = False
+) -> tuple[FlipRival, _core.IcpResults | None]:
+    """:func:`flip_rival`, and with ``polish`` the pose's :func:`polish` beside it."""
     d = codebook.model.diameter
     turn_rotations, turn_translations = codebook.doubtful_turns
     # Each turned pose is moved (not turned) so the query's keypoints land on
     # the model, as the candidates are (~0.05 ms); only the best few are
     # then settled by ICP (settling all of them: ~3× the cost). Given an own
     # net of 0, the core's margin is minus the rival's net.
-    margin, rotations, translations, fits = codebook.index.flip_margin(
+    margin, rotations, translations, fits, icp = codebook.index.flip_margin(
         query.keypoints,
         query.sample(settings.hypothesis_points, settings.subsample_seed),
         query.free_space,
@@ -316,8 +329,9 @@ def flip_rival(query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, s
         FLIP_SETTLED_RIVALS,
         FLIP_SETTLE_ITERATIONS,
         settings.icp_max_distance * d,
+        polish=_polish_arguments(query, codebook, settings) if polish else None,
     )
-    return FlipRival(-margin if len(rotations) else float("nan"), rotations, translations, fits)
+    return FlipRival(-margin if len(rotations) else float("nan"), rotations, translations, fits), icp
 
 
 def flip_margin(scores: PoseScores, rival: FlipRival) -> FlipMargin:
@@ -510,66 +524,19 @@ FLIP_SETTLED_RIVALS = 1
 FLIP_SETTLE_ITERATIONS = 2
 
 
-class Helper:
-    """One helper thread per process that runs a job beside the caller's
-    work (the Rust core lets go of the GIL, so both use a core). A job
-    submitted while it is busy (estimates from several threads at once) is
-    not queued: :meth:`submit` returns None and the caller runs it itself."""
-
-    def __init__(self) -> None:
-        self._forget()
-        # A forked child (a multiprocessing pool, Ray's workers) has no copy
-        # of the thread, and a lock held at fork time would stay held.
-        os.register_at_fork(after_in_child=self._forget)
-
-    def _forget(self) -> None:
-        self._setup = threading.Lock()
-        self._pool: ThreadPoolExecutor | None = None
-        self._free = threading.Lock()
-
-    def submit(self, job: Callable[[], T]) -> Future[T] | None:
-        """``job()`` started on the helper thread, or None when it is busy,
-        this machine has a single core or the interpreter is shutting down."""
-        if (os.cpu_count() or 1) < 2 or not self._free.acquire(blocking=False):
-            return None
-        free = self._free
-
-        def run() -> T:
-            try:
-                return job()
-            finally:
-                free.release()
-
-        try:
-            with self._setup:
-                if self._pool is None:
-                    self._pool = ThreadPoolExecutor(1, thread_name_prefix="edgepose-helper")
-            return self._pool.submit(run)
-        except RuntimeError:  # "cannot schedule new futures after interpreter shutdown"
-            free.release()
-            return None
-
-
-#: Runs :func:`flip_rival` beside the polish (:class:`RivalSearch`).
-HELPER = Helper()
-
-
 class RivalSearch:
-    """:func:`flip_rival` of one pose, started on the helper thread (it runs
-    while the caller polishes the pose and scores the result) or, when the
-    helper is busy or off, run in the caller's thread on first :meth:`get`:
-    the same rival either way, and none is computed for a pose that is
-    dropped before the confidence asks."""
+    """:func:`flip_rival` of one pose: found beside its polish
+    (:func:`polished`), or in the caller's thread on first :meth:`get` (so
+    none is searched for a pose dropped before the confidence asks)."""
 
-    def __init__(self, find: Callable[[], FlipRival], beside: bool) -> None:
+    def __init__(self, find: Callable[[], FlipRival]) -> None:
         self._find = find
-        self._pending = HELPER.submit(find) if beside else None
         self._rival: FlipRival | None = None
 
     def get(self) -> FlipRival:
-        """The rival (waiting for the helper thread if it is still on it)."""
+        """The rival."""
         if self._rival is None:
-            self._rival = self._pending.result() if self._pending is not None else self._find()
+            self._rival = self._find()
         return self._rival
 
 
@@ -579,15 +546,27 @@ def polished(
     """Pose ``(R, t)``'s final ICP :func:`polish` (None when
     ``settings.icp_iterations`` is 0) and the search for its turned rival
     (:func:`flip_rival`, from the pose before the polish: the rival is
-    settled by ICP anyway), started on the helper thread before the polish
-    when ``settings.flip_rival_beside_polish`` (:class:`RivalSearch`)."""
-    rival = RivalSearch(
-        partial(flip_rival, query, codebook, R, t, settings),
-        settings.flip_rival_beside_polish and settings.icp_iterations > 0,
-    )
+    settled by ICP anyway), done beside the polish on another core when
+    ``settings.flip_rival_beside_polish`` (:func:`polished_beside_flip_rival`),
+    else when first asked for (:class:`RivalSearch`)."""
     if settings.icp_iterations == 0:
-        return None, rival
-    return polish(query, codebook, R[None], t[None], settings), rival
+        return None, RivalSearch(partial(flip_rival, query, codebook, R, t, settings))
+    if settings.flip_rival_beside_polish:
+        icp, rival = polished_beside_flip_rival(query, codebook, R, t, settings)
+        return icp, RivalSearch(lambda: rival)
+    icp = polish(query, codebook, R[None], t[None], settings)
+    return icp, RivalSearch(partial(flip_rival, query, codebook, R, t, settings))
+
+
+def _polish_arguments(query: Query, codebook: Codebook, settings: EstimateSettings) -> tuple[np.ndarray, int, float]:
+    """What the final ICP polish runs on: ``settings.icp_points`` of the
+    query's points, ``settings.icp_iterations``, pairs within
+    ``settings.icp_max_distance`` × d (metres)."""
+    return (
+        query.sample(settings.icp_points, settings.subsample_seed + 1),
+        settings.icp_iterations,
+        settings.icp_max_distance * codebook.model.diameter,
+    )
 
 
 def polish(
@@ -595,13 +574,8 @@ def polish(
 ) -> _core.IcpResults:
     """The final ICP polish of poses (model frame → camera): ``settings.icp_iterations``
     on ``settings.icp_points`` of the query's points."""
-    return codebook.index.refine(
-        query.sample(settings.icp_points, settings.subsample_seed + 1),
-        rotations,
-        translations,
-        settings.icp_iterations,
-        settings.icp_max_distance * codebook.model.diameter,
-    )
+    cloud, iterations, max_distance = _polish_arguments(query, codebook, settings)
+    return codebook.index.refine(cloud, rotations, translations, iterations, max_distance)
 
 
 def usable_icp(

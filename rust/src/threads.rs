@@ -68,6 +68,28 @@ pub fn install<R: Send>(op: impl FnOnce() -> R + Send) -> R {
     }
 }
 
+/// `own()` in the calling thread and `job()` on one of the pool's threads
+/// at the same time (serially when the pool has a single thread); returns
+/// both results once both are done. A panic in either reaches the caller.
+pub fn beside<A: Send, B: Send>(
+    own: impl FnOnce() -> A + Send,
+    job: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    if rayon::current_thread_index().is_some() {
+        return rayon::join(own, job);
+    }
+    let pool = pool();
+    if pool.current_num_threads() < 2 {
+        return (own(), job());
+    }
+    let mut done = None;
+    let own = pool.in_place_scope(|scope| {
+        scope.spawn(|_| done = Some(job()));
+        own()
+    });
+    (own, done.expect("the scope waits for its job"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -86,6 +108,18 @@ mod tests {
             "{names:?}"
         );
         assert!(std::ptr::eq(pool(), pool()));
+    }
+
+    #[test]
+    fn beside_runs_the_job_on_a_pool_thread_while_the_caller_works() {
+        let name = || std::thread::current().name().unwrap_or("").to_string();
+        let (own, job) = beside(name, name);
+        assert_eq!(own, name());
+        if pool().current_num_threads() > 1 {
+            assert!(job.starts_with("edgepose-core-"), "{job}");
+        }
+        let panicked = std::panic::catch_unwind(|| beside(|| 1, || panic!("the job's own panic")));
+        assert!(panicked.is_err());
     }
 
     #[test]

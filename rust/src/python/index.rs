@@ -17,15 +17,17 @@ use crate::pairs::PairSettings;
 use crate::query::Pinhole;
 use crate::refine::IcpResult;
 use crate::scoring::{align_translations, score_poses, DepthGrid, SceneDepth, ScoreSettings};
-use crate::{search, Point3};
+use crate::{search, threads, Point3};
 
 /// What `flip_margin` hands Python: the margin and its best rival, if any
-/// (rotations (R, 3, 3), translations (R, 3), R ≤ 1).
+/// (rotations (R, 3, 3), translations (R, 3), fits (R,), R ≤ 1), and the
+/// pose's polish when asked for.
 type FlipMarginResult<'py> = (
     f64,
     Bound<'py, PyArray3<f64>>,
     Bound<'py, PyArray2<f64>>,
     Bound<'py, PyArray1<f64>>,
+    Option<PyIcpResults>,
 );
 
 /// Borrows an observed cloud (N, 3) float32, camera frame; a bad shape is an
@@ -277,7 +279,18 @@ impl PyModelIndex {
     /// `(margin, rotations (R, 3, 3), translations (R, 3), fits (R,))`: the
     /// best rival (model → camera; R = 1) and its mean truncated distance to
     /// the observed points (metres), or none (R = 0) when no turned pose is one.
+    ///
+    /// `polish`, `(cloud, max_iterations, max_distance)`: also ICP of the
+    /// pose as [`refine`](Self::refine) would, in this thread while the
+    /// rival is searched for on one of the core's threads (`threads::beside`);
+    /// returned last (None without `polish`).
     #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (
+        keypoints, observed, free_space, rotation, translation, own_net, turn_rotations,
+        turn_translations, align_iterations, align_distance, inlier_distance,
+        free_space_tolerance, model_stride, rival_distance, rival_points, symmetric, settled,
+        settle_iterations, settle_distance, polish = None,
+    ))]
     fn flip_margin<'py>(
         &self,
         py: Python<'py>,
@@ -300,10 +313,17 @@ impl PyModelIndex {
         settled: usize,
         settle_iterations: usize,
         settle_distance: f64,
+        polish: Option<(PyReadonlyArray2<'py, f32>, usize, f64)>,
     ) -> PyResult<FlipMarginResult<'py>> {
         guarded(|| {
             let k = cloud_triples(&keypoints, "keypoints")?;
             let o = cloud_triples(&observed, "observed")?;
+            let polish = match &polish {
+                Some((cloud, iterations, distance)) => {
+                    Some((cloud_triples(cloud, "cloud")?, *iterations, *distance))
+                }
+                None => None,
+            };
             let grid = &free_space.get().inner;
             let vector =
                 |a: &PyReadonlyArray1<'py, f64>, name: &str| -> PyResult<nalgebra::Vector3<f64>> {
@@ -342,8 +362,17 @@ impl PyModelIndex {
                 settle_iterations,
                 settle_distance,
             };
-            let found = py
-                .detach(|| flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings));
+            let search = || flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings);
+            let (polished, found) = py.detach(|| match polish {
+                Some((cloud, iterations, distance)) => {
+                    let (icp, found) = threads::beside(
+                        || self.inner.refine(cloud, pose, iterations, distance),
+                        search,
+                    );
+                    (Some(PyIcpResults { results: vec![icp] }), found)
+                }
+                None => (None, search()),
+            });
             let rivals: Vec<Pose> = found.rival.into_iter().collect();
             let fits = vec![found.rival_fit; rivals.len()];
             Ok((
@@ -351,6 +380,7 @@ impl PyModelIndex {
                 rotations_array(py, rivals.iter().map(|p| &p.rotation)),
                 translations_array(py, rivals.iter().map(|p| &p.translation)),
                 PyArray1::from_vec(py, fits),
+                polished,
             ))
         })
     }
