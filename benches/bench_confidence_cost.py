@@ -1,5 +1,5 @@
 """What the confidence costs an estimate, with the flip rival found on the
-helper thread beside the final ICP polish and after it
+Rust core's worker thread beside the final ICP polish and after it
 (``EstimateSettings.flip_rival_beside_polish``), in one process.
 
     .venv/bin/python benches/bench_confidence_cost.py [--repeats 9]

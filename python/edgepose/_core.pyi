@@ -208,7 +208,8 @@ class ModelIndex:
         settled: int,
         settle_iterations: int,
         settle_distance: float,
-    ) -> tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+        polish: tuple[npt.NDArray[np.float32], int, float] | None = None,
+    ) -> tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64], IcpResults | None]: ...
     def pair_poses(
         self, cloud: npt.NDArray[np.float32], scene_points: int, reference_stride: int, poses: int
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
