@@ -11,8 +11,10 @@ levels (clean, visible40, spill5, occluded30_spill5), seeds from 777900.
 Each view is estimated ``--repeats`` times in each mode, the modes
 interleaved; per view the median of each is kept. Printed: the median over
 views of the total, of the ``refine_hypotheses`` and ``confidence`` laps,
-of the polish (:func:`edgepose.stages.polished`) and of the wait for the
-rival (:meth:`edgepose.stages.RivalSearch.get`), and the per-view paired
+of the polish (:func:`edgepose.stages.polished`: beside, the call that
+also finds the rival, so it holds any wait for it) and of getting the
+rival (:meth:`edgepose.stages.RivalSearch.get`: ~0 beside, where it is
+already found; the search itself after), and the per-view paired
 difference of the totals. Both modes give the same poses and confidences
 (checked). The machine is noisy: compare the modes, not runs.
 """
@@ -102,7 +104,7 @@ def main() -> None:
                     "refine_hypotheses": pose.timings["refine_hypotheses"],
                     "confidence": pose.timings.get("confidence", 0.0),
                     "polished": polish.spent,
-                    "rival wait": wait.spent,
+                    "rival get": wait.spent,
                 }
                 for key, seconds in measured.items():
                     runs[mode].setdefault(key, []).append(seconds)

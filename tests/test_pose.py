@@ -332,6 +332,8 @@ def test_the_polish_beside_the_flip_rival_is_the_polish_alone(drill):
             np.testing.assert_array_equal(getattr(icp, name), getattr(alone, name))
         found = stages.flip_rival(query, codebook, R, t, settings)
         np.testing.assert_array_equal(rival.rotations, found.rotations)
+        np.testing.assert_array_equal(rival.translations, found.translations)
+        np.testing.assert_array_equal(rival.fits, found.fits)
         assert rival.net == found.net or (np.isnan(rival.net) and np.isnan(found.net))
 
 

@@ -149,7 +149,8 @@ def build_object(
 ) -> ObjectResult:
     """Build one mesh's codebook into ``out_dir`` unless an up-to-date one is
     there (``force`` rebuilds anyway). ``threads``: onnxruntime threads (default
-    every core; the Rust map work uses rayon's pool, sized by RAYON_NUM_THREADS).
+    every core; the Rust map work uses the core's worker threads, as many as
+    RAYON_NUM_THREADS says).
     Never raises: errors are retried ``retries`` times, then reported."""
     from edgepose.codebook import build_codebook, file_sha256
     from edgepose.encoder import default_encoder

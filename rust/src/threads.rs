@@ -4,11 +4,12 @@
 //! Not rayon's global pool: a process forked after using it (Python's
 //! `multiprocessing` on Linux, a robot stack's worker processes) inherits
 //! the pool's bookkeeping but none of its threads, and its first parallel
-//! loop would wait forever for them. [`install`] notices that it runs in a
-//! new process (its id changed) and starts a pool of its own there.
+//! loop would wait forever for them. [`pool`] forgets a pool in a forked
+//! child (a `pthread_atfork` handler) or one another process started (its
+//! id differs), and starts one of its own there.
 
 use std::ptr;
-use std::sync::atomic::{AtomicPtr, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicPtr, Ordering};
 
 use rayon::{ThreadPool, ThreadPoolBuilder};
 
@@ -20,11 +21,47 @@ struct ProcessPool {
 
 static POOL: AtomicPtr<ProcessPool> = AtomicPtr::new(ptr::null_mut());
 
+/// Whether [`forget_in_child`] is registered to run in forked children.
+static FORK_HANDLER: AtomicBool = AtomicBool::new(false);
+
+/// Runs in a forked child, right after the fork: the parent's pool (its
+/// threads are not in the child) is forgotten, never dropped. Only an
+/// atomic store: safe in a child of a multi-threaded process.
+#[cfg(unix)]
+extern "C" fn forget_in_child() {
+    POOL.store(ptr::null_mut(), Ordering::Release);
+}
+
+#[cfg(unix)]
+extern "C" {
+    fn pthread_atfork(
+        prepare: Option<extern "C" fn()>,
+        parent: Option<extern "C" fn()>,
+        child: Option<extern "C" fn()>,
+    ) -> std::ffi::c_int;
+}
+
+/// Registers [`forget_in_child`] once, before the first pool is published.
+/// The process id check in [`pool`] stays as a second guard (a child made
+/// by a raw `clone`, which runs no handlers); this one also covers a
+/// child whose id happens to be a finished parent's.
+fn register_fork_handler() {
+    #[cfg(unix)]
+    if !FORK_HANDLER.swap(true, Ordering::AcqRel) {
+        // SAFETY: registers a plain function with no captured state; a
+        // non-zero return (out of memory) only leaves the id check.
+        unsafe {
+            pthread_atfork(None, None, Some(forget_in_child));
+        }
+    }
+}
+
 /// This process's pool, started on first use (as many threads as rayon's
 /// global pool would have: `RAYON_NUM_THREADS`, else the cores this process
 /// may use).
 pub fn pool() -> &'static ThreadPool {
     let pid = std::process::id();
+    register_fork_handler();
     loop {
         let current = POOL.load(Ordering::Acquire);
         // SAFETY: a published pool is never freed (below), so the pointer
@@ -58,8 +95,8 @@ pub fn pool() -> &'static ThreadPool {
 }
 
 /// Runs `op` in this process's pool, so that its parallel loops use the
-/// pool's threads (the caller waits); in the current pool when the caller
-/// already is a pool's worker.
+/// pool's threads (the caller waits); in the pool the caller works for
+/// when it already is a pool's worker.
 pub fn install<R: Send>(op: impl FnOnce() -> R + Send) -> R {
     if rayon::current_thread_index().is_some() {
         op()
@@ -68,9 +105,11 @@ pub fn install<R: Send>(op: impl FnOnce() -> R + Send) -> R {
     }
 }
 
-/// `own()` in the calling thread and `job()` on one of the pool's threads
-/// at the same time (serially when the pool has a single thread); returns
-/// both results once both are done. A panic in either reaches the caller.
+/// `own()` in the calling thread and `job()` on one of this process's
+/// pool's threads at the same time (`rayon::join` in the pool the caller
+/// works for when it is a pool's worker; one after the other when the pool
+/// has a single thread); returns both results once both are done. A panic
+/// in either reaches the caller.
 pub fn beside<A: Send, B: Send>(
     own: impl FnOnce() -> A + Send,
     job: impl FnOnce() -> B + Send,
@@ -120,6 +159,20 @@ mod tests {
         }
         let panicked = std::panic::catch_unwind(|| beside(|| 1, || panic!("the job's own panic")));
         assert!(panicked.is_err());
+        let panicked = std::panic::catch_unwind(|| beside(|| panic!("own panic"), || 1));
+        assert!(panicked.is_err());
+    }
+
+    #[test]
+    fn beside_on_a_single_worker_runs_both_there() {
+        let one = ThreadPoolBuilder::new()
+            .num_threads(1)
+            .thread_name(|_| "only".to_string())
+            .build()
+            .unwrap();
+        let name = || std::thread::current().name().unwrap_or("").to_string();
+        let (own, job) = one.install(|| beside(name, name));
+        assert_eq!((own.as_str(), job.as_str()), ("only", "only"));
     }
 
     #[test]

@@ -276,9 +276,10 @@ impl PyModelIndex {
     /// (K, 3, 3) and `turn_translations` (K, 3) the model's turns tried (model frame);
     /// the `settled` best screened rivals are settled by `settle_iterations`
     /// of ICP pairing points within `settle_distance` metres. Returns
-    /// `(margin, rotations (R, 3, 3), translations (R, 3), fits (R,))`: the
-    /// best rival (model → camera; R = 1) and its mean truncated distance to
-    /// the observed points (metres), or none (R = 0) when no turned pose is one.
+    /// `(margin, rotations (R, 3, 3), translations (R, 3), fits (R,), polished)`:
+    /// the best rival (model → camera; R = 1) and its mean truncated distance
+    /// to the observed points (metres), or none (R = 0) when no turned pose
+    /// is one; `polished` as below.
     ///
     /// `polish`, `(cloud, max_iterations, max_distance)`: also ICP of the
     /// pose as [`refine`](Self::refine) would, in this thread while the
