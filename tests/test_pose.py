@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 
 import edgepose
@@ -371,3 +372,21 @@ def _estimate_in_child() -> tuple[np.ndarray, float, float]:
     pose = edgepose.estimate(_FORKED["cloud"], _FORKED["codebook"])
     rebuilt = edgepose.build_codebook(_FORKED["mesh"])
     return pose.matrix, pose.confidence, rebuilt.model.diameter
+
+
+def test_parallel_work_counts_the_cores_this_process_may_use():
+    """In a process pinned to one core (``taskset``, a robot stack's CPU
+    sets) edgepose counts one usable core (how many encoder threads and
+    ``estimate_many`` workers it starts by default), not the machine's."""
+    import subprocess
+    import sys
+
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("no CPU affinity on this platform")
+    script = (
+        "import os; os.sched_setaffinity(0, {min(os.sched_getaffinity(0))});"
+        "from edgepose.settings import usable_cores;"
+        "print(usable_cores(), os.cpu_count())"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout.split()
+    assert int(out[0]) == 1 and int(out[1]) >= 1

@@ -33,6 +33,7 @@ from typing import Any
 
 from edgepose.errors import EdgePoseError
 from edgepose.model import DEFAULT_MODEL_POINTS
+from edgepose.settings import usable_cores
 from edgepose.views import DEFAULT_VIEWS
 
 #: Mesh files picked up from a catalogue folder.
@@ -158,7 +159,7 @@ def build_object(
     mesh, target = Path(mesh), codebook_path(out_dir, mesh)
 
     def job() -> ObjectResult:
-        encoder = default_encoder(threads=threads or os.cpu_count() or 1)
+        encoder = default_encoder(threads=threads or usable_cores())
         digest = file_sha256(mesh)
         if not force and is_up_to_date(target, digest, settings, encoder):
             return ObjectResult(mesh.stem, "skipped", 0.0, str(target), target.stat().st_size, settings.views)
@@ -225,7 +226,7 @@ def _attempt(mesh: Path, job: Callable[[], ObjectResult], retries: int) -> Objec
 class LocalExecutor:
     """One object after another in this process, each with every core."""
 
-    threads = os.cpu_count() or 1
+    threads = usable_cores()
 
     def map(self, function: Callable[..., ObjectResult], jobs: list[tuple[str, dict]]) -> Iterator[ObjectResult]:
         """``function(**kwargs)`` for each ``(name, kwargs)`` job, in order."""

@@ -39,6 +39,7 @@ from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import EdgePoseError
 from edgepose.maps import DEFAULT_MAP_POINTS, compute_maps
 from edgepose.model import DEFAULT_MODEL_POINTS, MeshSource, StandardModel, load_model
+from edgepose.settings import usable_cores
 from edgepose.symmetry import NO_SYMMETRY, Symmetry, detect_symmetry, doubtful_turns
 from edgepose.views import DEFAULT_VIEWS, Viewpoints, fibonacci_viewpoints
 
@@ -258,7 +259,7 @@ def build_codebook(
     """Codebook of one object: a mesh file or ``trimesh.Trimesh`` (see
     :func:`edgepose.load_model` for ``scale``), or a ready StandardModel.
     Building is offline work, so the default encoder uses every core."""
-    encoder = encoder or default_encoder(threads=os.cpu_count() or 1)
+    encoder = encoder or default_encoder(threads=usable_cores())
     t0 = time.perf_counter()
     # Hashed before reading: if the file changes in between, the codebook
     # records the older hash and a catalogue rebuild picks the change up.

@@ -15,7 +15,6 @@ Units are metres; camera frames follow OpenCV; poses are ``T_cam_obj``.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -28,7 +27,7 @@ from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import EdgePoseError
 from edgepose.pose import Laps, Pose, check_estimate_inputs, pose_from_query
-from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
+from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
 from edgepose.stages import Query, prepare_query
 
 
@@ -79,9 +78,9 @@ def estimate_many(
     their poses."""
     # The batched encoding runs alone, so it may use every core (one
     # encoder for every call: loading one is not a frame's work).
-    encoder = encoder or default_encoder(threads=os.cpu_count() or 1)
+    encoder = encoder or default_encoder(threads=usable_cores())
     t0 = time.perf_counter()
-    workers = max(1, min(workers or os.cpu_count() or 1, len(objects)))
+    workers = max(1, min(workers or usable_cores(), len(objects)))
     depth, K = checked_depth(depth, K, depth_scale)
     masks = [checked_mask(mask, depth.shape) for mask, _ in objects]
     codebooks = [codebook for _, codebook in objects]

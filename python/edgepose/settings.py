@@ -8,8 +8,20 @@ CLI, the catalogue, the benchmarks — sees it.
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, replace
 from typing import Any
+
+
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity where the OS
+    has one (a robot stack pinning a process to two of eight cores, or
+    ``taskset``), else every core. How many threads edgepose's parallel
+    work starts by default (the encoder's, ``estimate_many``'s objects);
+    the Rust core's pool counts the same way (and a container's CPU quota)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
 
 
 @dataclass(frozen=True)
