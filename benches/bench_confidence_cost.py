@@ -1,8 +1,10 @@
 """What the confidence costs an estimate, with the flip rival found on the
 Rust core's worker thread beside the final ICP polish and after it
-(``EstimateSettings.flip_rival_beside_polish``), in one process.
+(``EstimateSettings.flip_rival_beside_polish``), in one process; or, with
+``--setting coarse_icp_on_two_cores``, what splitting the first search's
+coarse ICPs between two cores saves.
 
-    .venv/bin/python benches/bench_confidence_cost.py [--repeats 9]
+    .venv/bin/python benches/bench_confidence_cost.py [--repeats 9] [--setting NAME]
 
 Views: eight training CAD parts (never YCB; six of them ``bench_pose.py
 --tune``'s, plus two near-symmetric ones, where the flip margin matters),
@@ -11,10 +13,10 @@ levels (clean, visible40, spill5, occluded30_spill5), seeds from 777900.
 Each view is estimated ``--repeats`` times in each mode, the modes
 interleaved; per view the median of each is kept. Printed: the median over
 views of the total, of the ``refine_hypotheses`` and ``confidence`` laps,
-of the polish (:func:`edgepose.stages.polished`: beside, the call that
-also finds the rival, so it holds any wait for it) and of getting the
-rival (:meth:`edgepose.stages.RivalSearch.get`: ~0 beside, where it is
-already found; the search itself after), and the per-view paired
+of the polish (:func:`edgepose.stages.polished`: with the rival beside
+it, the call that also finds the rival, so it holds any wait for it) and
+of getting the rival (:meth:`edgepose.stages.RivalSearch.get`: ~0 when it
+was found beside the polish; the search itself after), and the per-view paired
 difference of the totals. Both modes give the same poses and confidences
 (checked). The machine is noisy: compare the modes, not runs.
 """
@@ -46,10 +48,8 @@ PARTS = [
 ]
 LEVELS = ["clean", "visible40", "spill5", "occluded30_spill5"]
 SEED_BASE = 777_900
-MODES = {
-    "beside": DEFAULT_SETTINGS.with_(flip_rival_beside_polish=True),
-    "after": DEFAULT_SETTINGS.with_(flip_rival_beside_polish=False),
-}
+#: The settings that put work on a second core; each is compared on and off.
+TWO_CORE_SETTINGS = ["flip_rival_beside_polish", "coarse_icp_on_two_cores"]
 
 
 class Clock:
@@ -74,7 +74,15 @@ class Clock:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=9, help="estimates of each view in each mode")
+    parser.add_argument(
+        "--setting", choices=TWO_CORE_SETTINGS, default=TWO_CORE_SETTINGS[0], help="the setting compared on and off"
+    )
     args = parser.parse_args()
+    # "on" first: the default settings.
+    modes = {
+        "on": DEFAULT_SETTINGS.with_(**{args.setting: True}),
+        "off": DEFAULT_SETTINGS.with_(**{args.setting: False}),
+    }
     encoder = default_encoder()
     views = []
     for k, part in enumerate(PARTS):
@@ -90,14 +98,14 @@ def main() -> None:
     polish, wait = Clock(), Clock()
     polish.wrap(stages, "polished")
     wait.wrap(stages.RivalSearch, "get")
-    per_view: dict[str, dict[str, list[float]]] = {m: {} for m in MODES}
+    per_view: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
     for codebook, cloud in views:
-        runs: dict[str, dict[str, list[float]]] = {m: {} for m in MODES}
+        runs: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
         poses = {}
         for r in range(args.repeats):
-            for mode in list(MODES) if r % 2 else list(MODES)[::-1]:
+            for mode in list(modes) if r % 2 else list(modes)[::-1]:
                 polish.spent = wait.spent = 0.0
-                pose = edgepose.estimate(cloud, codebook, encoder=encoder, settings=MODES[mode])
+                pose = edgepose.estimate(cloud, codebook, encoder=encoder, settings=modes[mode])
                 poses[mode] = pose
                 measured = {
                     "total": pose.timings["total"],
@@ -108,21 +116,21 @@ def main() -> None:
                 }
                 for key, seconds in measured.items():
                     runs[mode].setdefault(key, []).append(seconds)
-        a, b = poses["beside"], poses["after"]
+        a, b = poses["on"], poses["off"]
         if not (np.array_equal(a.matrix, b.matrix) and a.confidence == b.confidence):
-            raise SystemExit("the modes gave different poses: the rival must not depend on the thread")
-        for mode in MODES:
+            raise SystemExit(f"{args.setting} on and off gave different poses: no result may depend on the thread")
+        for mode in modes:
             for key, seconds in runs[mode].items():
                 per_view[mode].setdefault(key, []).append(float(np.median(seconds)))
-    print(f"{len(views)} views × {args.repeats} estimates per mode; medians over views, ms")
-    print(f"{'':<18}" + "".join(f"{m:>10}" for m in MODES))
-    for key in per_view["beside"]:
-        print(f"{key:<18}" + "".join(f"{1e3 * np.median(per_view[m][key]):>10.3f}" for m in MODES))
-    paired = 1e3 * (np.array(per_view["beside"]["total"]) - np.array(per_view["after"]["total"]))
+    print(f"{len(views)} views × {args.repeats} estimates per mode; medians over views, ms; {args.setting} on and off")
+    print(f"{'':<18}" + "".join(f"{m:>10}" for m in modes))
+    for key in per_view["on"]:
+        print(f"{key:<18}" + "".join(f"{1e3 * np.median(per_view[m][key]):>10.3f}" for m in modes))
+    paired = 1e3 * (np.array(per_view["on"]["total"]) - np.array(per_view["off"]["total"]))
     print(
-        f"total, beside minus after, per view: median {np.median(paired):+.3f} ms"
+        f"total, on minus off, per view: median {np.median(paired):+.3f} ms"
         f" (IQR {np.quantile(paired, 0.25):+.3f}..{np.quantile(paired, 0.75):+.3f}),"
-        f" beside faster on {np.mean(paired < 0):.0%} of views"
+        f" on faster on {np.mean(paired < 0):.0%} of views"
     )
 
 

@@ -313,6 +313,20 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
         assert beside.confidence == after.confidence and beside.evidence == after.evidence
 
 
+def test_coarse_icps_split_between_two_cores_give_the_same_poses(drill):
+    """The first search's few coarse ICPs split between the caller's thread
+    and one of the core's (``coarse_icp_on_two_cores``, the default) or run
+    one after another: the same poses, confidences and evidence."""
+    mesh, codebook = drill
+    settings = edgepose.EstimateSettings()
+    for seed, occluders in [(4, 0), (12, 2), (22, 3)]:
+        view = render_view(mesh, seed=seed, occluders=occluders)
+        split = edgepose.estimate(view.cloud, codebook, settings=settings)
+        serial = edgepose.estimate(view.cloud, codebook, settings=settings.with_(coarse_icp_on_two_cores=False))
+        np.testing.assert_array_equal(split.matrix, serial.matrix)
+        assert split.confidence == serial.confidence and split.evidence == serial.evidence
+
+
 def test_the_polish_beside_the_flip_rival_is_the_polish_alone(drill):
     """One core call that polishes a pose and finds its rival gives what
     the two calls give on their own, bit for bit."""

@@ -178,6 +178,7 @@ class ModelIndex:
         translations: npt.NDArray[np.float64],
         max_iterations: int,
         max_distance: float,
+        two_cores: bool = False,
     ) -> IcpResults: ...
     def pose_distances(
         self,

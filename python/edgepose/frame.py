@@ -100,8 +100,11 @@ def estimate_many(
 
     pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
     # Objects searched in parallel already share the cores: each pose's
-    # flip rival is found after its polish, not on another core beside it.
-    search_settings = settings.with_(flip_rival_beside_polish=False) if pool else settings
+    # coarse ICPs run one after another and its flip rival is found after
+    # its polish, not on another core beside them.
+    search_settings = (
+        settings.with_(flip_rival_beside_polish=False, coarse_icp_on_two_cores=False) if pool else settings
+    )
     each = pool.map if pool else map  # one worker: this thread, no pool
     try:
         started = time.perf_counter()

@@ -461,7 +461,12 @@ def refine_hypotheses(
     new = [int(s) for s in starts if ("coarse", int(s)) not in cache]
     if new:
         icp = codebook.index.refine(
-            coarse, rotations[new], translations[new], settings.hypothesis_iterations, max_distance
+            coarse,
+            rotations[new],
+            translations[new],
+            settings.hypothesis_iterations,
+            max_distance,
+            two_cores=settings.coarse_icp_on_two_cores,
         )
         for i, s in enumerate(new):  # ICP runs each start on its own: one at a time is the same
             cache["coarse", s] = (icp.rotations[i], icp.translations[i], icp.inliers[i], icp.rmse[i])

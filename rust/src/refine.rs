@@ -18,8 +18,10 @@ pub const CONVERGED: f64 = 1e-5;
 /// unconstrained directions solvable (a zero step along them).
 const DAMPING: f64 = 1e-9;
 
-/// [`ModelIndex::refine_each`] runs this many starts or more in parallel:
-/// the second search's 5–8 new hypotheses, not the first search's 3.
+/// [`ModelIndex::refine_each`] runs this many starts or more in parallel on
+/// the core's pool: the second search's 5–8 new hypotheses, not the first
+/// search's 3 (those it splits between the caller and one worker when
+/// asked: `two_cores`).
 pub const PARALLEL_STARTS: usize = 4;
 
 /// One ICP correspondence, model frame: the moved cloud point, its nearest
@@ -43,20 +45,32 @@ impl ModelIndex {
     /// [`refine`](Self::refine) from each of several `starts`: one result per
     /// start, in order. Refining a few distinct hypotheses and keeping the
     /// best fit resolves near-symmetric objects whose turned-over pose
-    /// verifies almost as well as the true one. Runs in the calling thread
-    /// for fewer than [`PARALLEL_STARTS`] starts: a few sub-millisecond ICPs
-    /// gain nothing from a thread pool, and waking one can cost milliseconds
-    /// on a busy CPU. Each start's result is its own either way.
+    /// verifies almost as well as the true one. Fewer than
+    /// [`PARALLEL_STARTS`] starts run in the calling thread (a few
+    /// sub-millisecond ICPs gain nothing from a whole pool, and waking one
+    /// can cost milliseconds on a busy CPU) or, with `two_cores`, the later
+    /// half of them on one of the pool's threads beside it
+    /// ([`threads::beside`]: one wake-up, none when the pool has a single
+    /// thread). Each start's result is its own either way.
     pub fn refine_each(
         &self,
         cloud: &[Point3],
         starts: &[Pose],
         max_iterations: usize,
         max_distance: f64,
+        two_cores: bool,
     ) -> Vec<IcpResult> {
         let icp = |start: &Pose| self.refine(cloud, *start, max_iterations, max_distance);
         if starts.len() >= PARALLEL_STARTS {
             threads::install(|| starts.par_iter().map(icp).collect())
+        } else if two_cores && starts.len() >= 2 {
+            let (own, job) = starts.split_at(starts.len().div_ceil(2));
+            let (mut results, later) = threads::beside(
+                || own.iter().map(icp).collect::<Vec<_>>(),
+                || job.iter().map(icp).collect::<Vec<_>>(),
+            );
+            results.extend(later);
+            results
         } else {
             starts.iter().map(icp).collect()
         }
@@ -256,7 +270,7 @@ pub(crate) mod tests {
                 }
             })
             .collect();
-        let each = index.refine_each(&cloud, &starts, 25, 0.05);
+        let each = index.refine_each(&cloud, &starts, 25, 0.05, false);
         assert_eq!(each.len(), starts.len());
         for (start, out) in starts.iter().zip(&each) {
             let alone = index.refine(&cloud, *start, 25, 0.05);
@@ -264,6 +278,12 @@ pub(crate) mod tests {
                 out.pose, alone.pose,
                 "several starts at once and one at a time must agree exactly"
             );
+        }
+        for count in 1..=starts.len() {
+            let split = index.refine_each(&cloud, &starts[..count], 25, 0.05, true);
+            let poses: Vec<Pose> = split.iter().map(|r| r.pose).collect();
+            let alone: Vec<Pose> = each[..count].iter().map(|r| r.pose).collect();
+            assert_eq!(poses, alone, "split between two cores, {count} starts");
         }
         // The near starts converge to the truth; the turned-over one fits worse.
         assert!(each[0].rmse < 1e-4 && each[1].rmse < 1e-4, "{each:?}");

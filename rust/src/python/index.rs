@@ -425,8 +425,12 @@ impl PyModelIndex {
     }
 
     /// Point-to-plane ICP of `cloud` (camera frame) from each start pose
-    /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)), one
-    /// after another: one result per start, in order.
+    /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)): one
+    /// result per start, in order. A few starts run one after another, or
+    /// with `two_cores` split between this thread and one of the core's;
+    /// many in parallel (`ModelIndex::refine_each`).
+    #[pyo3(signature = (cloud, rotations, translations, max_iterations, max_distance, two_cores = false))]
+    #[allow(clippy::too_many_arguments)]
     fn refine(
         &self,
         py: Python<'_>,
@@ -435,13 +439,14 @@ impl PyModelIndex {
         translations: PyReadonlyArray2<'_, f64>,
         max_iterations: usize,
         max_distance: f64,
+        two_cores: bool,
     ) -> PyResult<PyIcpResults> {
         guarded(|| {
             let c = cloud_triples(&cloud, "cloud")?;
             let starts = poses_from(&rotations, &translations)?;
             let results = py.detach(|| {
                 self.inner
-                    .refine_each(c, &starts, max_iterations, max_distance)
+                    .refine_each(c, &starts, max_iterations, max_distance, two_cores)
             });
             Ok(PyIcpResults { results })
         })
