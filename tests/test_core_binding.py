@@ -94,6 +94,9 @@ def test_icp_results_are_typed_with_one_entry_per_start():
     np.testing.assert_allclose(icp.translations, [truth, truth], atol=1e-4)
     with pytest.raises(AttributeError):
         icp.rmse = np.zeros(2)  # frozen
+    split = index.refine(cloud, starts_R, starts_t, 30, 0.02, two_cores=True)
+    for name in ("rotations", "translations", "iterations", "converged", "inliers", "rmse"):
+        np.testing.assert_array_equal(getattr(split, name), getattr(icp, name))
 
 
 def test_the_model_is_built_once_and_shared_by_maps_and_index():

@@ -185,12 +185,14 @@ class EstimateSettings:
     778600) 58.8 → 60.7 % (16 right, 5 wrong), and on the six tuning parts
     95.0 → 96.0 % (4 right, none wrong; the check ran on 9 % of views)."""
     coarse_icp_on_two_cores: bool = True
-    """Split the coarse ICPs of the first search's few hypotheses between
-    the caller's thread and one of the Rust core's (the second search's
-    many run on all the core's threads anyway): the same poses, sooner
-    where a second core is free (on 96 tuning-part views, 2026-11-27,
-    ``refine_hypotheses`` 6.5 → 5.7 ms, an estimate 0.66 ms faster at the
-    median). :func:`edgepose.estimate_many`, when its objects share the
+    """Split the coarse ICPs of a search's new hypotheses, when there are
+    2 or 3 (the first search's; the second search's starts not already
+    refined by the first), between the caller's thread and one of the Rust
+    core's (4 or more run on all the core's threads anyway): the same
+    poses, sooner where a second core is free (on 96 tuning-part views,
+    2026-11-27 08:23, ``refine_hypotheses`` 6.46 → 5.65 ms, an estimate
+    0.71 ms faster at the median; ``benches/bench_confidence_cost.py
+    --setting coarse_icp_on_two_cores``). :func:`edgepose.estimate_many`, when its objects share the
     cores on several threads, runs them one after another."""
     flip_rival_beside_polish: bool = True
     """Find the confidence's turned rival of the pose (its flip margin's,

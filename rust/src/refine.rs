@@ -19,9 +19,9 @@ pub const CONVERGED: f64 = 1e-5;
 const DAMPING: f64 = 1e-9;
 
 /// [`ModelIndex::refine_each`] runs this many starts or more in parallel on
-/// the core's pool: the second search's 5–8 new hypotheses, not the first
-/// search's 3 (those it splits between the caller and one worker when
-/// asked: `two_cores`).
+/// the core's pool (a second search's new hypotheses, when it has 4 or
+/// more); fewer (the first search's 3) one after another, or split between
+/// the caller and one worker when asked (`two_cores`).
 pub const PARALLEL_STARTS: usize = 4;
 
 /// One ICP correspondence, model frame: the moved cloud point, its nearest
@@ -281,9 +281,18 @@ pub(crate) mod tests {
         }
         for count in 1..=starts.len() {
             let split = index.refine_each(&cloud, &starts[..count], 25, 0.05, true);
-            let poses: Vec<Pose> = split.iter().map(|r| r.pose).collect();
-            let alone: Vec<Pose> = each[..count].iter().map(|r| r.pose).collect();
-            assert_eq!(poses, alone, "split between two cores, {count} starts");
+            let key = |r: &IcpResult| {
+                (
+                    r.pose,
+                    r.iterations,
+                    r.converged,
+                    r.inliers,
+                    r.rmse.to_bits(),
+                )
+            };
+            let split: Vec<_> = split.iter().map(key).collect();
+            let alone: Vec<_> = each[..count].iter().map(key).collect();
+            assert_eq!(split, alone, "split between two cores, {count} starts");
         }
         // The near starts converge to the truth; the turned-over one fits worse.
         assert!(each[0].rmse < 1e-4 && each[1].rmse < 1e-4, "{each:?}");
