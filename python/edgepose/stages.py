@@ -554,13 +554,13 @@ def polished(
     settled by ICP anyway), done beside the polish on another core when
     ``settings.flip_rival_beside_polish`` (:func:`polished_beside_flip_rival`),
     else when first asked for (:class:`RivalSearch`)."""
-    if settings.icp_iterations == 0:
-        return None, RivalSearch(partial(flip_rival, query, codebook, R, t, settings))
-    if settings.flip_rival_beside_polish:
+    if settings.icp_iterations > 0 and settings.flip_rival_beside_polish:
         icp, rival = polished_beside_flip_rival(query, codebook, R, t, settings)
         return icp, RivalSearch(lambda: rival)
-    icp = polish(query, codebook, R[None], t[None], settings)
-    return icp, RivalSearch(partial(flip_rival, query, codebook, R, t, settings))
+    later = RivalSearch(partial(flip_rival, query, codebook, R, t, settings))
+    if settings.icp_iterations == 0:
+        return None, later
+    return polish(query, codebook, R[None], t[None], settings), later
 
 
 def _polish_arguments(query: Query, codebook: Codebook, settings: EstimateSettings) -> tuple[np.ndarray, int, float]:
