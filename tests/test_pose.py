@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 
 import edgepose
 import numpy as np
@@ -276,9 +277,9 @@ def test_the_depth_frame_exposes_a_pose_out_of_the_occluders_shadow(drill):
 
 
 def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill, monkeypatch):
-    """The confidence's turned rival is found by the Rust core beside the
-    polish (``flip_rival_beside_polish``, the default: one core call does
-    both) or after the polish in the caller's thread: the same poses,
+    """The confidence's turned rival is handed to one of the Rust core's
+    threads before the polish (``flip_rival_beside_polish``, the default)
+    or found after the polish in the caller's thread: the same poses,
     confidences and evidence, on whole and partly hidden views. The
     confidence uses stage 5's rival: it never looks for one of the refined
     pose itself."""
@@ -286,15 +287,14 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
     from edgepose import stages
 
     mesh, codebook = drill
-    calls: list[str] = []
-    for name in ("flip_rival", "polished_beside_flip_rival"):
-        real = getattr(stages, name)
+    searches: list[bool] = []
+    real = stages.RivalSearch.__init__
 
-        def recorded(*args, _real=real, _name=name, **kwargs):
-            calls.append(_name)
-            return _real(*args, **kwargs)
+    def recorded(self, *args, beside, **kwargs):
+        searches.append(beside)
+        real(self, *args, beside=beside, **kwargs)
 
-        monkeypatch.setattr(stages, name, recorded)
+    monkeypatch.setattr(stages.RivalSearch, "__init__", recorded)
 
     def not_wanted(*args, **kwargs):
         raise AssertionError("the confidence looked for the refined pose's rival itself")
@@ -303,12 +303,12 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
     settings = edgepose.EstimateSettings()
     for seed, occluders in [(3, 0), (11, 2), (21, 3)]:
         view = render_view(mesh, seed=seed, occluders=occluders)
-        calls.clear()
+        searches.clear()
         beside = edgepose.estimate(view.cloud, codebook, settings=settings)
-        assert "polished_beside_flip_rival" in calls and "flip_rival" not in calls, calls
-        calls.clear()
+        assert searches and all(searches), searches
+        searches.clear()
         after = edgepose.estimate(view.cloud, codebook, settings=settings.with_(flip_rival_beside_polish=False))
-        assert "flip_rival" in calls and "polished_beside_flip_rival" not in calls, calls
+        assert searches and not any(searches), searches
         np.testing.assert_array_equal(beside.matrix, after.matrix)
         assert beside.confidence == after.confidence and beside.evidence == after.evidence
 
@@ -327,9 +327,11 @@ def test_coarse_icps_split_between_two_cores_give_the_same_poses(drill):
         assert split.confidence == serial.confidence and split.evidence == serial.evidence
 
 
-def test_the_polish_beside_the_flip_rival_is_the_polish_alone(drill):
-    """One core call that polishes a pose and finds its rival gives what
-    the two calls give on their own, bit for bit."""
+def test_a_flip_rival_handed_to_a_core_thread_is_the_one_found_in_the_caller(drill):
+    """The rival search handed to one of the core's threads gives what the
+    caller's own search gives, bit for bit: asked for at once (the caller
+    may take it back before a thread starts it), after the thread is done,
+    or while the caller polishes; and again when asked twice."""
     from edgepose import stages
 
     mesh, codebook = drill
@@ -338,18 +340,23 @@ def test_the_polish_beside_the_flip_rival_is_the_polish_alone(drill):
         view = render_view(mesh, seed=seed, occluders=2)
         query = prepare_query(view.cloud, codebook, settings=settings)
         # The true pose in the model frame (the mesh frame shifted by its
-        # centre), 4 mm off: the polish has work to do.
+        # centre), 4 mm off, as a search leaves it before the polish.
         R = np.ascontiguousarray(view.T_cam_obj[:3, :3])
         t = view.T_cam_obj[:3, 3] + R @ codebook.model.centre + 0.004
-        icp, rival = stages.polished_beside_flip_rival(query, codebook, R, t, settings)
+        found = stages.RivalSearch(query, codebook, R, t, settings, beside=False).get()
+        assert len(found.rotations) == 1
+        at_once = stages.RivalSearch(query, codebook, R, t, settings, beside=True).get()
+        later = stages.RivalSearch(query, codebook, R, t, settings, beside=True)
+        time.sleep(0.05)
+        icp, polished_beside = stages.polished(query, codebook, R, t, settings)
         alone = stages.polish(query, codebook, R[None], t[None], settings)
         for name in ("rotations", "translations", "inliers", "rmse"):
             np.testing.assert_array_equal(getattr(icp, name), getattr(alone, name))
-        found = stages.flip_rival(query, codebook, R, t, settings)
-        np.testing.assert_array_equal(rival.rotations, found.rotations)
-        np.testing.assert_array_equal(rival.translations, found.translations)
-        np.testing.assert_array_equal(rival.fits, found.fits)
-        assert rival.net == found.net or (np.isnan(rival.net) and np.isnan(found.net))
+        for rival in (at_once, later.get(), polished_beside.get(), later.get()):
+            np.testing.assert_array_equal(rival.rotations, found.rotations)
+            np.testing.assert_array_equal(rival.translations, found.translations)
+            np.testing.assert_array_equal(rival.fits, found.fits)
+            assert rival.net == found.net
 
 
 #: What a forked child estimates: set in the parent before it forks.

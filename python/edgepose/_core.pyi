@@ -120,6 +120,11 @@ class IcpResults:
     @property
     def rmse(self) -> npt.NDArray[np.float64]: ...
 
+class FlipMarginSearch:
+    def result(
+        self,
+    ) -> tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+
 class DepthGrid:
     def __init__(
         self,
@@ -209,8 +214,8 @@ class ModelIndex:
         settled: int,
         settle_iterations: int,
         settle_distance: float,
-        polish: tuple[npt.NDArray[np.float32], int, float] | None = None,
-    ) -> tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64], IcpResults | None]: ...
+        beside: bool = False,
+    ) -> FlipMarginSearch: ...
     def pair_poses(
         self, cloud: npt.NDArray[np.float32], scene_points: int, reference_stride: int, poses: int
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...

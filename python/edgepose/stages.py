@@ -22,9 +22,8 @@ the model's centre); units are metres. Every tuning value lives in
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cached_property, partial
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -284,54 +283,7 @@ def flip_rival(query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, s
     mistakes a search makes on a near-symmetric view (a banana end for end,
     a box whose telling details are hidden). One call to the Rust core
     (``rust/src/flips.rs``), which lets go of the GIL."""
-    return _flip_rival_core(query, codebook, R, t, settings)[0]
-
-
-def polished_beside_flip_rival(
-    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings
-) -> tuple[_core.IcpResults, FlipRival]:
-    """Pose ``(R, t)``'s :func:`polish` and its :func:`flip_rival`, in one
-    call to the Rust core: the polish in the caller's thread while the
-    rival is searched for on one of the core's threads
-    (``rust/src/threads.rs``), each as it would be on its own."""
-    rival, icp = _flip_rival_core(query, codebook, R, t, settings, polish=True)
-    assert icp is not None
-    return icp, rival
-
-
-def _flip_rival_core(
-    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings, polish: bool = False
-) -> tuple[FlipRival, _core.IcpResults | None]:
-    """:func:`flip_rival`, and with ``polish`` the pose's :func:`polish` beside it."""
-    d = codebook.model.diameter
-    turn_rotations, turn_translations = codebook.doubtful_turns
-    # Each turned pose is moved (not turned) so the query's keypoints land on
-    # the model, as the candidates are (~0.05 ms); only the best few are
-    # then settled by ICP (settling all of them: ~3× the cost). Given an own
-    # net of 0, the core's margin is minus the rival's net.
-    margin, rotations, translations, fits, icp = codebook.index.flip_margin(
-        query.keypoints,
-        query.sample(settings.hypothesis_points, settings.subsample_seed),
-        query.free_space,
-        np.ascontiguousarray(R, dtype=np.float64),
-        np.ascontiguousarray(t, dtype=np.float64),
-        0.0,
-        turn_rotations,
-        turn_translations,
-        FLIP_ALIGN_ITERATIONS,
-        settings.candidate_inlier_distance * d,
-        settings.hypothesis_inlier_distance * d,
-        settings.free_space_tolerance * d,
-        settings.free_space_model_stride,
-        RIVAL_DISTANCE * d,
-        RIVAL_POINTS,
-        codebook.symmetry.symmetric,
-        FLIP_SETTLED_RIVALS,
-        FLIP_SETTLE_ITERATIONS,
-        settings.icp_max_distance * d,
-        polish=_polish_arguments(query, codebook, settings) if polish else None,
-    )
-    return FlipRival(-margin if len(rotations) else float("nan"), rotations, translations, fits), icp
+    return RivalSearch(query, codebook, R, t, settings, beside=False).get()
 
 
 def flip_margin(scores: PoseScores, rival: FlipRival) -> FlipMargin:
@@ -530,19 +482,49 @@ FLIP_SETTLE_ITERATIONS = 2
 
 
 class RivalSearch:
-    """:func:`flip_rival` of one pose: found beside its polish
-    (:func:`polished`), or in the caller's thread on first :meth:`get` (so
-    none is searched for a pose dropped before the confidence asks)."""
+    """:func:`flip_rival` of pose ``(R, t)``, found once: with ``beside``
+    on one of the Rust core's threads from now on, while the caller goes
+    on (the caller finds it itself if it asks before any thread has started
+    it: a virtual CPU can take a millisecond to wake); else in the caller's
+    thread on the first :meth:`get` (so none is searched for a pose dropped
+    before the confidence asks). The same rival either way."""
 
-    def __init__(self, find: Callable[[], FlipRival]) -> None:
-        self._find = find
-        self._rival: FlipRival | None = None
+    def __init__(
+        self, query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings, beside: bool
+    ) -> None:
+        d = codebook.model.diameter
+        turn_rotations, turn_translations = codebook.doubtful_turns
+        # Each turned pose is moved (not turned) so the query's keypoints land on
+        # the model, as the candidates are (~0.05 ms); only the best few are
+        # then settled by ICP (settling all of them: ~3× the cost). Given an own
+        # net of 0, the core's margin is minus the rival's net.
+        self._search = codebook.index.flip_margin(
+            query.keypoints,
+            query.sample(settings.hypothesis_points, settings.subsample_seed),
+            query.free_space,
+            np.ascontiguousarray(R, dtype=np.float64),
+            np.ascontiguousarray(t, dtype=np.float64),
+            0.0,
+            turn_rotations,
+            turn_translations,
+            FLIP_ALIGN_ITERATIONS,
+            settings.candidate_inlier_distance * d,
+            settings.hypothesis_inlier_distance * d,
+            settings.free_space_tolerance * d,
+            settings.free_space_model_stride,
+            RIVAL_DISTANCE * d,
+            RIVAL_POINTS,
+            codebook.symmetry.symmetric,
+            FLIP_SETTLED_RIVALS,
+            FLIP_SETTLE_ITERATIONS,
+            settings.icp_max_distance * d,
+            beside=beside,
+        )
 
     def get(self) -> FlipRival:
-        """The rival."""
-        if self._rival is None:
-            self._rival = self._find()
-        return self._rival
+        """The rival (waited for while a core thread finds it)."""
+        margin, rotations, translations, fits = self._search.result()
+        return FlipRival(-margin if len(rotations) else float("nan"), rotations, translations, fits)
 
 
 def polished(
@@ -551,27 +533,14 @@ def polished(
     """Pose ``(R, t)``'s final ICP :func:`polish` (None when
     ``settings.icp_iterations`` is 0) and the search for its turned rival
     (:func:`flip_rival`, from the pose before the polish: the rival is
-    settled by ICP anyway), done beside the polish on another core when
-    ``settings.flip_rival_beside_polish`` (:func:`polished_beside_flip_rival`),
-    else when first asked for (:class:`RivalSearch`)."""
-    if settings.icp_iterations > 0 and settings.flip_rival_beside_polish:
-        icp, rival = polished_beside_flip_rival(query, codebook, R, t, settings)
-        return icp, RivalSearch(lambda: rival)
-    later = RivalSearch(partial(flip_rival, query, codebook, R, t, settings))
+    settled by ICP anyway), handed to another core before the polish starts
+    when ``settings.flip_rival_beside_polish``, else found when first
+    asked for (:class:`RivalSearch`)."""
+    beside = settings.icp_iterations > 0 and settings.flip_rival_beside_polish
+    rival = RivalSearch(query, codebook, R, t, settings, beside=beside)
     if settings.icp_iterations == 0:
-        return None, later
-    return polish(query, codebook, R[None], t[None], settings), later
-
-
-def _polish_arguments(query: Query, codebook: Codebook, settings: EstimateSettings) -> tuple[np.ndarray, int, float]:
-    """What the final ICP polish runs on: ``settings.icp_points`` of the
-    query's points, ``settings.icp_iterations``, pairs within
-    ``settings.icp_max_distance`` × d (metres)."""
-    return (
-        query.sample(settings.icp_points, settings.subsample_seed + 1),
-        settings.icp_iterations,
-        settings.icp_max_distance * codebook.model.diameter,
-    )
+        return None, rival
+    return polish(query, codebook, R[None], t[None], settings), rival
 
 
 def polish(
@@ -579,8 +548,13 @@ def polish(
 ) -> _core.IcpResults:
     """The final ICP polish of poses (model frame → camera): ``settings.icp_iterations``
     on ``settings.icp_points`` of the query's points."""
-    cloud, iterations, max_distance = _polish_arguments(query, codebook, settings)
-    return codebook.index.refine(cloud, rotations, translations, iterations, max_distance)
+    return codebook.index.refine(
+        query.sample(settings.icp_points, settings.subsample_seed + 1),
+        rotations,
+        translations,
+        settings.icp_iterations,
+        settings.icp_max_distance * codebook.model.diameter,
+    )
 
 
 def usable_icp(

@@ -8,8 +8,10 @@
 //! child (a `pthread_atfork` handler) or one another process started (its
 //! id differs), and starts one of its own there.
 
+use std::panic::{catch_unwind, resume_unwind, AssertUnwindSafe};
 use std::ptr;
 use std::sync::atomic::{AtomicBool, AtomicPtr, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use rayon::{ThreadPool, ThreadPoolBuilder};
 
@@ -129,6 +131,102 @@ pub fn beside<A: Send, B: Send>(
     (own, done.expect("the scope waits for its job"))
 }
 
+/// A job [`hand_over`] gave one of the pool's threads, and its result.
+/// The caller asks for the result with [`Handed::take`]: it waits while a
+/// worker runs the job, and runs the job itself when no worker has started
+/// it yet, so a worker slow to wake (an idle virtual CPU can take a
+/// millisecond) never holds the caller up longer than the job would.
+/// Dropped unasked, a job no worker has started never runs.
+pub struct Handed<T> {
+    slot: Arc<(Mutex<Slot<T>>, Condvar)>,
+}
+
+type Job<T> = Box<dyn FnOnce() -> T + Send>;
+
+enum Slot<T> {
+    /// Not started (or dropped unasked: `None`).
+    Waiting(Option<Job<T>>),
+    /// A worker runs it.
+    Running,
+    /// Its result, or its panic.
+    Done(std::thread::Result<T>),
+}
+
+/// `job` on one of this process's pool's threads, starting now, while the
+/// caller goes on; its result comes from [`Handed::take`]. With a pool of
+/// one thread, or from a pool's own thread (whose pool may be busy with the
+/// caller's own loops), no worker is asked: `take` runs it.
+pub fn hand_over<T: Send + 'static>(job: impl FnOnce() -> T + Send + 'static) -> Handed<T> {
+    let handed = later(job);
+    let pool = pool();
+    if rayon::current_thread_index().is_none() && pool.current_num_threads() >= 2 {
+        let slot = Arc::clone(&handed.slot);
+        pool.spawn(move || {
+            let (lock, done) = &*slot;
+            let job = {
+                let mut slot = locked(lock);
+                match std::mem::replace(&mut *slot, Slot::Running) {
+                    Slot::Waiting(Some(job)) => job,
+                    // Taken back by the caller, or dropped unasked.
+                    other => {
+                        *slot = other;
+                        return;
+                    }
+                }
+            };
+            let result = catch_unwind(AssertUnwindSafe(job));
+            *locked(lock) = Slot::Done(result);
+            done.notify_all();
+        });
+    }
+    handed
+}
+
+/// `job`, run by the thread that asks for its result ([`Handed::take`]),
+/// when it does: no worker is asked.
+pub fn later<T: Send + 'static>(job: impl FnOnce() -> T + Send + 'static) -> Handed<T> {
+    Handed {
+        slot: Arc::new((
+            Mutex::new(Slot::Waiting(Some(Box::new(job)))),
+            Condvar::new(),
+        )),
+    }
+}
+
+/// The slot's lock; a panic never happens while it is held, so it is never poisoned.
+fn locked<T>(lock: &Mutex<T>) -> MutexGuard<'_, T> {
+    lock.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl<T> Handed<T> {
+    /// The job's result: waited for while a worker runs it; the job run in
+    /// this thread when no worker has started it. A panic in the job
+    /// reaches the caller here.
+    pub fn take(self) -> T {
+        let (lock, done) = &*self.slot;
+        let mut slot = locked(lock);
+        loop {
+            match std::mem::replace(&mut *slot, Slot::Running) {
+                Slot::Waiting(job) => {
+                    drop(slot);
+                    return job.expect("only a drop leaves no job")();
+                }
+                Slot::Running => slot = done.wait(slot).unwrap_or_else(|p| p.into_inner()),
+                Slot::Done(result) => return result.unwrap_or_else(|panic| resume_unwind(panic)),
+            }
+        }
+    }
+}
+
+impl<T> Drop for Handed<T> {
+    /// A job no worker has started is dropped with its inputs: it never runs.
+    fn drop(&mut self) {
+        if let Slot::Waiting(job) = &mut *locked(&self.slot.0) {
+            job.take();
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -173,6 +271,82 @@ mod tests {
         let name = || std::thread::current().name().unwrap_or("").to_string();
         let (own, job) = one.install(|| beside(name, name));
         assert_eq!((own.as_str(), job.as_str()), ("only", "only"));
+    }
+
+    /// Holds every worker of the process's pool until the returned sender
+    /// is dropped (or sent to); returns once all of them are held.
+    fn hold_the_workers() -> std::sync::mpsc::Sender<()> {
+        let (release, held) = std::sync::mpsc::channel::<()>();
+        let held = Arc::new(Mutex::new(held));
+        let (started, wait_started) = std::sync::mpsc::channel();
+        for _ in 0..pool().current_num_threads() {
+            let (held, started) = (Arc::clone(&held), started.clone());
+            pool().spawn(move || {
+                started.send(()).unwrap();
+                let _ = held.lock().unwrap().recv();
+            });
+        }
+        for _ in 0..pool().current_num_threads() {
+            wait_started.recv().unwrap();
+        }
+        release
+    }
+
+    // The tests below that hold the pool's workers run one at a time.
+    static HOLDING: Mutex<()> = Mutex::new(());
+
+    #[test]
+    fn a_handed_job_no_worker_started_is_run_by_the_caller() {
+        let _one_at_a_time = HOLDING.lock().unwrap_or_else(|p| p.into_inner());
+        let name = || std::thread::current().name().unwrap_or("").to_string();
+        let release = hold_the_workers();
+        let runs = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let counted = Arc::clone(&runs);
+        let handed = hand_over(move || {
+            counted.fetch_add(1, Ordering::SeqCst);
+            name()
+        });
+        assert_eq!(
+            handed.take(),
+            name(),
+            "taken back while every worker was busy"
+        );
+        // A job dropped unasked is never run, even once a worker is free.
+        let ran = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&ran);
+        drop(hand_over(move || flag.store(true, Ordering::SeqCst)));
+        drop(release);
+        install(|| ()); // the workers are free again ...
+        std::thread::sleep(std::time::Duration::from_millis(50)); // ... and any job left has run
+        assert!(!ran.load(Ordering::SeqCst));
+        assert_eq!(
+            runs.load(Ordering::SeqCst),
+            1,
+            "the job taken back ran once"
+        );
+    }
+
+    #[test]
+    fn a_handed_job_runs_on_a_worker_and_its_result_or_panic_comes_back() {
+        let _one_at_a_time = HOLDING.lock().unwrap_or_else(|p| p.into_inner());
+        let handed = hand_over(|| std::thread::current().name().unwrap_or("").to_string());
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        let on = handed.take();
+        if pool().current_num_threads() > 1 {
+            assert!(on.starts_with("edgepose-core-"), "{on}");
+        }
+        let handed = hand_over(|| -> u8 { panic!("the job's own panic") });
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        let panicked = std::panic::catch_unwind(AssertUnwindSafe(|| handed.take()));
+        assert!(panicked.is_err());
+        // Asked for while a worker runs it: waited for.
+        let handed = hand_over(|| {
+            std::thread::sleep(std::time::Duration::from_millis(30));
+            7
+        });
+        std::thread::sleep(std::time::Duration::from_millis(10));
+        assert_eq!(handed.take(), 7);
+        assert_eq!(later(|| 8).take(), 8);
     }
 
     #[test]

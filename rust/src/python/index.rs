@@ -7,27 +7,27 @@ use numpy::{
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use std::sync::{Arc, Mutex};
 
 use super::arrays::{poses_from, rotations_array, translations_array, triples};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
-use crate::flips::{flip_margin, pose_distances, FlipSettings};
+use crate::flips::{flip_margin, pose_distances, FlipMargin, FlipSettings};
 use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::query::Pinhole;
 use crate::refine::IcpResult;
 use crate::scoring::{align_translations, score_poses, DepthGrid, SceneDepth, ScoreSettings};
-use crate::{search, threads, Point3};
+use crate::threads::{self, Handed};
+use crate::{search, Point3};
 
-/// What `flip_margin` hands Python: the margin and its best rival, if any
-/// (rotations (R, 3, 3), translations (R, 3), fits (R,), R ≤ 1), and the
-/// pose's polish when asked for.
+/// What `FlipMarginSearch.result` hands Python: the margin and its best
+/// rival, if any (rotations (R, 3, 3), translations (R, 3), fits (R,), R ≤ 1).
 type FlipMarginResult<'py> = (
     f64,
     Bound<'py, PyArray3<f64>>,
     Bound<'py, PyArray2<f64>>,
     Bound<'py, PyArray1<f64>>,
-    Option<PyIcpResults>,
 );
 
 /// Borrows an observed cloud (N, 3) float32, camera frame; a bad shape is an
@@ -45,7 +45,7 @@ fn cloud_triples<'a>(array: &'a PyReadonlyArray2<'_, f32>, name: &str) -> PyResu
 /// read as the nearest depth within `scene_radius` pixels. Immutable.
 #[pyclass(frozen, name = "DepthGrid", module = "edgepose._core")]
 pub struct PyDepthGrid {
-    inner: DepthGrid,
+    inner: Arc<DepthGrid>,
 }
 
 #[pymethods]
@@ -90,7 +90,7 @@ impl PyDepthGrid {
                 }
             };
             Ok(Self {
-                inner: py.detach(|| {
+                inner: Arc::new(py.detach(|| {
                     let grid = DepthGrid::new(c, spacing, 2.0);
                     match scene {
                         Some((pixels, width, camera)) => {
@@ -98,7 +98,7 @@ impl PyDepthGrid {
                         }
                         None => grid,
                     }
-                }),
+                })),
             })
         })
     }
@@ -108,7 +108,7 @@ impl PyDepthGrid {
 /// verification, scoring and ICP. Immutable: safe to share between threads.
 #[pyclass(frozen, name = "ModelIndex", module = "edgepose._core")]
 pub struct PyModelIndex {
-    inner: ModelIndex,
+    inner: Arc<ModelIndex>,
 }
 
 #[pymethods]
@@ -118,7 +118,7 @@ impl PyModelIndex {
         guarded(|| {
             let (points, normals) = (model.inner.points.clone(), model.inner.normals.clone());
             Ok(Self {
-                inner: py.detach(|| ModelIndex::new(points, normals)),
+                inner: Arc::new(py.detach(|| ModelIndex::new(points, normals))),
             })
         })
     }
@@ -269,32 +269,27 @@ impl PyModelIndex {
         })
     }
 
-    /// The flip margin of the pose (`rotation` (3, 3), `translation` (3,),
-    /// model → camera) whose inlier fraction minus free-space violation on
-    /// the `observed` points is `own_net`: see the core's `flips` module.
-    /// `keypoints`, `observed` and `free_space` are the query's; `turn_rotations`
-    /// (K, 3, 3) and `turn_translations` (K, 3) the model's turns tried (model frame);
-    /// the `settled` best screened rivals are settled by `settle_iterations`
-    /// of ICP pairing points within `settle_distance` metres. Returns
-    /// `(margin, rotations (R, 3, 3), translations (R, 3), fits (R,), polished)`:
-    /// the best rival (model → camera; R = 1) and its mean truncated distance
-    /// to the observed points (metres), or none (R = 0) when no turned pose
-    /// is one; `polished` as below.
-    ///
-    /// `polish`, `(cloud, max_iterations, max_distance)`: also ICP of the
-    /// pose as [`refine`](Self::refine) would, in this thread while the
-    /// rival is searched for on one of the core's threads (`threads::beside`);
-    /// returned last (None without `polish`).
+    /// The search for the flip margin of the pose (`rotation` (3, 3),
+    /// `translation` (3,), model → camera) whose inlier fraction minus
+    /// free-space violation on the `observed` points is `own_net`: see the
+    /// core's `flips` module. `keypoints`, `observed` and `free_space` are
+    /// the query's; `turn_rotations` (K, 3, 3) and `turn_translations`
+    /// (K, 3) the model's turns tried (model frame); the `settled` best
+    /// screened rivals are settled by `settle_iterations` of ICP pairing
+    /// points within `settle_distance` metres. Its `result()` is found in
+    /// the thread that asks for it, or, with `beside`, on one of the core's
+    /// threads from now on while the caller goes on (`threads::hand_over`;
+    /// the caller runs it when it asks before any thread has started it):
+    /// the same either way.
     #[allow(clippy::too_many_arguments)]
     #[pyo3(signature = (
         keypoints, observed, free_space, rotation, translation, own_net, turn_rotations,
         turn_translations, align_iterations, align_distance, inlier_distance,
         free_space_tolerance, model_stride, rival_distance, rival_points, symmetric, settled,
-        settle_iterations, settle_distance, polish = None,
+        settle_iterations, settle_distance, beside = false,
     ))]
     fn flip_margin<'py>(
         &self,
-        py: Python<'py>,
         keypoints: PyReadonlyArray2<'py, f32>,
         observed: PyReadonlyArray2<'py, f32>,
         free_space: &Bound<'py, PyDepthGrid>,
@@ -314,18 +309,14 @@ impl PyModelIndex {
         settled: usize,
         settle_iterations: usize,
         settle_distance: f64,
-        polish: Option<(PyReadonlyArray2<'py, f32>, usize, f64)>,
-    ) -> PyResult<FlipMarginResult<'py>> {
+        beside: bool,
+    ) -> PyResult<PyFlipMarginSearch> {
         guarded(|| {
-            let k = cloud_triples(&keypoints, "keypoints")?;
-            let o = cloud_triples(&observed, "observed")?;
-            let polish = match &polish {
-                Some((cloud, iterations, distance)) => {
-                    Some((cloud_triples(cloud, "cloud")?, *iterations, *distance))
-                }
-                None => None,
-            };
-            let grid = &free_space.get().inner;
+            // Copies (a few KB) the search owns: it may outlive this call.
+            let keypoints = cloud_triples(&keypoints, "keypoints")?.to_vec();
+            let observed = cloud_triples(&observed, "observed")?.to_vec();
+            let grid = Arc::clone(&free_space.get().inner);
+            let index = Arc::clone(&self.inner);
             let vector =
                 |a: &PyReadonlyArray1<'py, f64>, name: &str| -> PyResult<nalgebra::Vector3<f64>> {
                     match a.as_slice() {
@@ -363,26 +354,19 @@ impl PyModelIndex {
                 settle_iterations,
                 settle_distance,
             };
-            let search = || flip_margin(&self.inner, k, o, grid, &pose, own_net, &turns, &settings);
-            let (polished, found) = py.detach(|| match polish {
-                Some((cloud, iterations, distance)) => {
-                    let (icp, found) = threads::beside(
-                        || self.inner.refine(cloud, pose, iterations, distance),
-                        search,
-                    );
-                    (Some(PyIcpResults { results: vec![icp] }), found)
-                }
-                None => (None, search()),
-            });
-            let rivals: Vec<Pose> = found.rival.into_iter().collect();
-            let fits = vec![found.rival_fit; rivals.len()];
-            Ok((
-                found.margin,
-                rotations_array(py, rivals.iter().map(|p| &p.rotation)),
-                translations_array(py, rivals.iter().map(|p| &p.translation)),
-                PyArray1::from_vec(py, fits),
-                polished,
-            ))
+            let search = move || {
+                flip_margin(
+                    &index, &keypoints, &observed, &grid, &pose, own_net, &turns, &settings,
+                )
+            };
+            let handed = if beside {
+                threads::hand_over(search)
+            } else {
+                threads::later(search)
+            };
+            Ok(PyFlipMarginSearch {
+                state: Mutex::new(FlipSearchState::Searching(Some(handed))),
+            })
         })
     }
 
@@ -449,6 +433,56 @@ impl PyModelIndex {
                     .refine_each(c, &starts, max_iterations, max_distance, two_cores)
             });
             Ok(PyIcpResults { results })
+        })
+    }
+}
+
+/// `ModelIndex.flip_margin`'s search: found once, on the first `result()`
+/// (or beside the caller, handed to one of the core's threads).
+#[pyclass(frozen, name = "FlipMarginSearch", module = "edgepose._core")]
+pub struct PyFlipMarginSearch {
+    state: Mutex<FlipSearchState>,
+}
+
+enum FlipSearchState {
+    /// `None` only while a thread takes it (a panic there leaves it so).
+    Searching(Option<Handed<FlipMargin>>),
+    Found(FlipMargin),
+}
+
+#[pymethods]
+impl PyFlipMarginSearch {
+    /// `(margin, rotations (R, 3, 3), translations (R, 3), fits (R,))`: the
+    /// best rival (model → camera; R = 1) and its mean truncated distance
+    /// to the observed points (metres), or none (R = 0) when no turned pose
+    /// is one. Waits for the search while a core thread runs it, or runs it
+    /// in this thread (without the GIL).
+    fn result<'py>(&self, py: Python<'py>) -> PyResult<FlipMarginResult<'py>> {
+        guarded(|| {
+            let found = py.detach(|| {
+                let mut state = self.state.lock().unwrap_or_else(|p| p.into_inner());
+                match &mut *state {
+                    FlipSearchState::Found(found) => Ok(*found),
+                    FlipSearchState::Searching(handed) => match handed.take() {
+                        Some(handed) => {
+                            let found = handed.take();
+                            *state = FlipSearchState::Found(found);
+                            Ok(found)
+                        }
+                        None => Err(PyValueError::new_err(
+                            "this flip margin search failed before (see the first error)",
+                        )),
+                    },
+                }
+            })?;
+            let rivals: Vec<Pose> = found.rival.into_iter().collect();
+            let fits = vec![found.rival_fit; rivals.len()];
+            Ok((
+                found.margin,
+                rotations_array(py, rivals.iter().map(|p| &p.rotation)),
+                translations_array(py, rivals.iter().map(|p| &p.translation)),
+                PyArray1::from_vec(py, fits),
+            ))
         })
     }
 }

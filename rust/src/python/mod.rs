@@ -82,6 +82,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<model::PyStandardModel>()?;
     m.add_class::<index::PyModelIndex>()?;
     m.add_class::<index::PyIcpResults>()?;
+    m.add_class::<index::PyFlipMarginSearch>()?;
     m.add_class::<index::PyDepthGrid>()?;
     m.add_function(wrap_pyfunction!(model::compute_maps, m)?)?;
     functions::register(m)?;
