@@ -10,7 +10,8 @@ import edgepose
 import numpy as np
 import pytest
 import trimesh
-from edgepose.confidence import FEATURES, TRUST_THRESHOLD, ConfidenceModel, feature_vector
+from edgepose import _core
+from edgepose.confidence import FEATURES, TERMS, TRUST_THRESHOLD, ConfidenceModel, feature_vector
 from edgepose.encoder import MODELS_DIR, Encoder
 from edgepose.eval import render_view
 from edgepose.eval.metrics import acceptance, auroc, calibration
@@ -114,10 +115,33 @@ def test_each_term_is_a_piecewise_linear_curve_through_its_knots():
     shipped = ConfidenceModel.from_manifest(json.loads((MODELS_DIR / "manifest.json").read_text())["confidence"])
     assert any(shipped.knots)
     rng = np.random.default_rng(0)
-    evidence = [{n: float(rng.uniform(0.0, 1.0)) for n in shipped.features} for _ in range(50)]
+    # Every branch of every transform (negative margins, extents past 1.2 d,
+    # fractions past 1): the Rust core's sum reads them as Python's do.
+    logged = {n for n, terms in TERMS.items() if any("log" in t.__name__ or "unexplained" in t.__name__ for t in terms)}
+    evidence = [
+        {n: float(rng.uniform(0.0 if n in logged else -0.5, 1.5)) for n in shipped.features} for _ in range(200)
+    ]
     terms = np.array([feature_vector(e, shipped.features) for e in evidence])
     z = (ConfidenceModel.inputs(terms, shipped.knots) - shipped.mean) / shipped.scale @ shipped.weights + shipped.bias
     assert [shipped.probability(e) for e in evidence] == pytest.approx(1 / (1 + np.exp(-z)), abs=1e-12)
+    assert np.isnan(shipped.probability({**evidence[0], "margin": float("nan")}))
+
+
+def test_a_confidence_model_that_does_not_add_up_is_refused():
+    """A manifest whose knots do not match its terms, and a core model
+    given an unknown transform or the wrong number of evidence values, are
+    errors naming the problem, not a silent probability."""
+    one = np.ones(2)
+    with pytest.raises(ValueError, match="model of 2 terms has 1 lists of knots"):
+        ConfidenceModel(("score", "fit"), ((0.5,),), 0 * one, one, one, 0.0)
+    with pytest.raises(ValueError, match='unknown confidence term transform "softplus"'):
+        _core.ConfidenceCurves([(0, "softplus", 1.0, [])], 0.0, 1)
+    with pytest.raises(ValueError, match="reads evidence 1 of 1"):
+        _core.ConfidenceCurves([(1, "value", 1.0, [])], 0.0, 1)
+    curves = _core.ConfidenceCurves([(0, "value", 1.0, [(0.5, -1.0)])], 0.0, 1)
+    assert curves.probability([0.0]) == 0.5
+    with pytest.raises(ValueError, match="2 evidence values for a model of 1"):
+        curves.probability([0.0, 1.0])
 
 
 def test_the_fit_finds_the_lowest_threshold_that_lets_few_wrong_poses_through():

@@ -125,6 +125,12 @@ class FlipMarginSearch:
         self,
     ) -> tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
 
+class ConfidenceCurves:
+    def __init__(
+        self, terms: list[tuple[int, str, float, list[tuple[float, float]]]], intercept: float, evidence: int
+    ) -> None: ...
+    def probability(self, evidence: list[float]) -> float: ...
+
 class DepthGrid:
     def __init__(
         self,

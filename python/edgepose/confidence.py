@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from edgepose import _core
+
 #: The documented default rule: trust a pose whose confidence is at least this.
 TRUST_THRESHOLD = 0.5
 
@@ -121,7 +123,12 @@ def feature_vector(evidence: dict[str, float], names: tuple[str, ...]) -> np.nda
 
 def term_names(names: tuple[str, ...]) -> list[str]:
     """``feature:transform`` for each model input, in :func:`feature_vector`'s order."""
-    return [f"{n}:{term.__name__.strip('_')}" for n in names for term in TERMS[n]]
+    return [f"{n}:{transform_name(term)}" for n in names for term in TERMS[n]]
+
+
+def transform_name(term: Callable[[float], float]) -> str:
+    """A term's transform by name, as the manifest and the Rust core (``rust/src/confidence.rs``) know it."""
+    return term.__name__.strip("_")
 
 
 def hinge_names(names: tuple[str, ...], knots: tuple[tuple[float, ...], ...]) -> list[str]:
@@ -167,23 +174,25 @@ class ConfidenceModel:
     bias: float
     stricter_rules: tuple[StricterRule, ...] = ()
     """Thresholds that let fewer wrong poses through than 0.5, recorded with the fit (none: not recorded)."""
-    _raw: tuple[tuple[tuple[str, Callable[[float], float], float, tuple[tuple[float, float], ...]], ...], float] = (
-        field(init=False, repr=False, compare=False)
-    )
-    """The same model on the unstandardised terms: (feature, transform,
-    weight, ((knot, weight), ...)) of each term and the intercept, as Python
-    floats (~9 µs a pose in plain Python, 27 µs with a generator over the
-    hinges, 13 µs through padded numpy arrays, 2026-11-27; through numpy
-    inputs in situ, ~60 µs)."""
+    _curves: _core.ConfidenceCurves = field(init=False, repr=False, compare=False)
+    """The same model on the unstandardised terms, summed by the Rust core
+    (``rust/src/confidence.rs``), term by term in the order plain Python
+    would (the same bits): ~60 µs a pose in Python in situ (caches cold
+    after the search), 2026-11-27."""
 
     def __post_init__(self) -> None:
+        term_count = sum(len(TERMS[n]) for n in self.features)
+        if len(self.knots) != term_count:
+            raise ValueError(f"a confidence model of {term_count} terms has {len(self.knots)} lists of knots")
         coefficients = iter((self.weights / self.scale).tolist())
-        terms = tuple(
-            (name, term, next(coefficients), tuple((k, next(coefficients)) for k in term_knots))
-            for (name, term), term_knots in zip(((n, t) for n in self.features for t in TERMS[n]), self.knots)
-        )
+        terms = [
+            (i, transform_name(term), next(coefficients), [(k, next(coefficients)) for k in term_knots])
+            for (i, term), term_knots in zip(
+                ((i, t) for i, n in enumerate(self.features) for t in TERMS[n]), self.knots
+            )
+        ]
         intercept = float(self.bias - self.mean @ (self.weights / self.scale))
-        object.__setattr__(self, "_raw", (terms, intercept))
+        object.__setattr__(self, "_curves", _core.ConfidenceCurves(terms, intercept, len(self.features)))
 
     @staticmethod
     def inputs(terms: np.ndarray, knots: tuple[tuple[float, ...], ...]) -> np.ndarray:
@@ -196,15 +205,7 @@ class ConfidenceModel:
 
     def probability(self, evidence: dict[str, float]) -> float:
         """P(correct | evidence), 0–1."""
-        terms, z = self._raw
-        for name, term, c, hinges in terms:
-            x = term(evidence[name])
-            bent = 0.0  # a loop, not sum() over a generator: ~3x faster
-            for k, ck in hinges:
-                if x > k:
-                    bent += ck * (x - k)
-            z += c * x + bent
-        return 1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0)))
+        return self._curves.probability([evidence[n] for n in self.features])
 
     def threshold_for(self, wrong_accepted: float) -> float:
         """The lowest threshold that let at most ``wrong_accepted`` (0–1) of the

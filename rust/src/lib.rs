@@ -4,6 +4,7 @@
 //! (x right, y down, z forward). Everything here builds and tests without
 //! Python; the pyo3 layer lives in [`python`] behind the `python` feature.
 
+pub mod confidence;
 pub mod error;
 pub mod flips;
 pub mod grouping;

@@ -20,6 +20,7 @@
 //! needs `panic = "unwind"`, Rust's default, which the workspace profiles keep.
 
 mod arrays;
+mod confidence;
 mod functions;
 mod index;
 mod model;
@@ -84,6 +85,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<index::PyIcpResults>()?;
     m.add_class::<index::PyFlipMarginSearch>()?;
     m.add_class::<index::PyDepthGrid>()?;
+    m.add_class::<confidence::PyConfidenceCurves>()?;
     m.add_function(wrap_pyfunction!(model::compute_maps, m)?)?;
     functions::register(m)?;
     #[cfg(feature = "test-hooks")]
