@@ -1,8 +1,8 @@
-"""What the confidence costs an estimate, with the flip rival found on the
-Rust core's worker thread beside the final ICP polish and after it
-(``EstimateSettings.flip_rival_beside_polish``), in one process; or, with
-``--setting coarse_icp_on_two_cores``, what splitting the first search's
-coarse ICPs between two cores saves.
+"""What the confidence costs an estimate, with the flip rival handed to one
+of the Rust core's threads before the final ICP polish and found after the
+polish in the caller's thread (``EstimateSettings.flip_rival_beside_polish``
+on and off), in one process; or, with ``--setting coarse_icp_on_two_cores``,
+what splitting the first search's coarse ICPs between two cores saves.
 
     .venv/bin/python benches/bench_confidence_cost.py [--repeats 9] [--setting NAME]
 
@@ -13,12 +13,16 @@ levels (clean, visible40, spill5, occluded30_spill5), seeds from 777900.
 Each view is estimated ``--repeats`` times in each mode, the modes
 interleaved; per view the median of each is kept. Printed: the median over
 views of the total, of the ``refine_hypotheses`` and ``confidence`` laps,
-of the polish (:func:`edgepose.stages.polished`: with the rival beside
-it, the call that also finds the rival, so it holds any wait for it) and
-of getting the rival (:meth:`edgepose.stages.RivalSearch.get`: ~0 when it
-was found beside the polish; the search itself after), and the per-view paired
-difference of the totals. Both modes give the same poses and confidences
-(checked). The machine is noisy: compare the modes, not runs.
+of :func:`edgepose.stages.polished` (the rival search started, then the
+polish), of its two parts (``rival start``: :class:`edgepose.stages.RivalSearch`
+made, and handed to a core thread when on; ``polish``: :func:`edgepose.stages.polish`),
+and of getting the rival (:meth:`edgepose.stages.RivalSearch.get`, inside
+the confidence lap: the wait, if any, when on; the search itself when
+off); the per-view paired difference of the totals; and the confidence's
+own cost per estimate in each mode, per view: rival start + confidence
+lap, plus, when on, the polish's time on minus off (what the rival
+running beside it costs the polish). Both modes give the same poses and
+confidences (checked). The machine is noisy: compare the modes, not runs.
 """
 
 from __future__ import annotations
@@ -95,24 +99,26 @@ def main() -> None:
             seeds = [SEED_BASE + k * 100 + i for i in range(3)]
             bench = load_object(mesh, seeds, name=part, symmetric=codebook.symmetry.symmetric, stress=level)
             views += [(codebook, cloud) for cloud in bench.clouds]
-    polish, wait = Clock(), Clock()
-    polish.wrap(stages, "polished")
-    wait.wrap(stages.RivalSearch, "get")
+    clocks = {name: Clock() for name in ("polished", "rival start", "polish", "rival get")}
+    clocks["polished"].wrap(stages, "polished")
+    clocks["rival start"].wrap(stages.RivalSearch, "__init__")
+    clocks["polish"].wrap(stages, "polish")
+    clocks["rival get"].wrap(stages.RivalSearch, "get")
     per_view: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
     for codebook, cloud in views:
         runs: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
         poses = {}
         for r in range(args.repeats):
             for mode in list(modes) if r % 2 else list(modes)[::-1]:
-                polish.spent = wait.spent = 0.0
+                for clock in clocks.values():
+                    clock.spent = 0.0
                 pose = edgepose.estimate(cloud, codebook, encoder=encoder, settings=modes[mode])
                 poses[mode] = pose
                 measured = {
                     "total": pose.timings["total"],
                     "refine_hypotheses": pose.timings["refine_hypotheses"],
                     "confidence": pose.timings.get("confidence", 0.0),
-                    "polished": polish.spent,
-                    "rival get": wait.spent,
+                    **{name: clock.spent for name, clock in clocks.items()},
                 }
                 for key, seconds in measured.items():
                     runs[mode].setdefault(key, []).append(seconds)
@@ -132,6 +138,14 @@ def main() -> None:
         f" (IQR {np.quantile(paired, 0.25):+.3f}..{np.quantile(paired, 0.75):+.3f}),"
         f" on faster on {np.mean(paired < 0):.0%} of views"
     )
+    if args.setting == "flip_rival_beside_polish":
+        own = {m: 1e3 * (np.array(per_view[m]["rival start"]) + np.array(per_view[m]["confidence"])) for m in modes}
+        beside = 1e3 * (np.array(per_view["on"]["polish"]) - np.array(per_view["off"]["polish"]))
+        print(
+            f"the confidence's own cost per estimate, median over views: on {np.median(own['on'] + beside):.3f} ms"
+            f" (rival start + confidence lap {np.median(own['on']):.3f}, polish on minus off {np.median(beside):+.3f}),"
+            f" off {np.median(own['off']):.3f} ms"
+        )
 
 
 if __name__ == "__main__":

@@ -195,13 +195,15 @@ class EstimateSettings:
     --setting coarse_icp_on_two_cores``). :func:`edgepose.estimate_many`, when its objects share the
     cores on several threads, runs them one after another."""
     flip_rival_beside_polish: bool = True
-    """Find the confidence's turned rival of the pose (its flip margin's,
-    :func:`edgepose.stages.flip_rival`) on one of the Rust core's threads
-    while ICP polishes the pose in the caller's, instead of after the
-    polish: the same rival either way (it starts from the pose before the
-    polish), sooner where a second core is free.
-    :func:`edgepose.estimate_many`, when its objects share the cores on
-    several threads, finds it after."""
+    """Hand the search for the confidence's turned rival of the pose (its
+    flip margin's, :func:`edgepose.stages.flip_rival`) to one of the Rust
+    core's threads before ICP polishes the pose in the caller's, instead of
+    searching after the polish: the same rival either way (it starts from
+    the pose before the polish), sooner where a second core is free. The
+    caller takes the search back and runs it itself if no thread has
+    started it when the confidence asks (``rust/src/threads.rs``,
+    ``hand_over``). :func:`edgepose.estimate_many`, when its objects share
+    the cores on several threads, searches after."""
     min_icp_inliers: int = 16
     """An ICP result with fewer inlier pairs is not trusted."""
     subsample_seed: int = 1

@@ -13,7 +13,8 @@ step 7), each reusable on its own (the exporter's evaluation, benchmarks):
    keypoint distances to the model and free-space violations (Rust);
 5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
    distinct candidates, scored again; the best one is polished (while
-   another core finds its turned rival for the confidence, :func:`polished`).
+   another core searches for its turned rival for the confidence,
+   :func:`polished`).
 
 Poses are model frame → camera (the model frame is the mesh frame shifted by
 the model's centre); units are metres. Every tuning value lives in
