@@ -329,23 +329,24 @@ mod tests {
     #[test]
     fn a_handed_job_runs_on_a_worker_and_its_result_or_panic_comes_back() {
         let _one_at_a_time = HOLDING.lock().unwrap_or_else(|p| p.into_inner());
-        let handed = hand_over(|| std::thread::current().name().unwrap_or("").to_string());
-        std::thread::sleep(std::time::Duration::from_millis(50));
-        let on = handed.take();
+        let (started, wait_started) = std::sync::mpsc::channel();
+        let handed = hand_over(move || {
+            started.send(()).unwrap();
+            // Asked for while a worker runs it: waited for.
+            std::thread::sleep(std::time::Duration::from_millis(30));
+            std::thread::current().name().unwrap_or("").to_string()
+        });
         if pool().current_num_threads() > 1 {
+            wait_started.recv().unwrap();
+            let on = handed.take();
             assert!(on.starts_with("edgepose-core-"), "{on}");
+        } else {
+            assert_eq!(handed.take(), std::thread::current().name().unwrap_or(""));
         }
+        // A panic reaches the caller, whoever ran the job.
         let handed = hand_over(|| -> u8 { panic!("the job's own panic") });
-        std::thread::sleep(std::time::Duration::from_millis(50));
         let panicked = std::panic::catch_unwind(AssertUnwindSafe(|| handed.take()));
         assert!(panicked.is_err());
-        // Asked for while a worker runs it: waited for.
-        let handed = hand_over(|| {
-            std::thread::sleep(std::time::Duration::from_millis(30));
-            7
-        });
-        std::thread::sleep(std::time::Duration::from_millis(10));
-        assert_eq!(handed.take(), 7);
         assert_eq!(later(|| 8).take(), 8);
     }
 
