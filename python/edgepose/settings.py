@@ -188,7 +188,9 @@ class EstimateSettings:
     """Split the coarse ICPs of a search's new hypotheses, when there are
     2 or 3 (the first search's; the second search's starts not already
     refined by the first), between the caller's thread and one of the Rust
-    core's (4 or more run on all the core's threads anyway): the same
+    core's (4 or more run on all the core's threads anyway; the caller
+    runs the core's half itself if no thread has started it when its own
+    half is done, ``rust/src/threads.rs``, ``hand_over``): the same
     poses, sooner where a second core is free (on 96 tuning-part views,
     2026-11-27 08:23, ``refine_hypotheses`` 6.46 → 5.65 ms, an estimate
     0.71 ms faster at the median; ``benches/bench_confidence_cost.py

@@ -2,6 +2,8 @@
 //! viewpoint search. Works in the model frame, where the model's kd-tree is
 //! built once per codebook.
 
+use std::sync::Arc;
+
 use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
 use rayon::prelude::*;
 
@@ -49,11 +51,13 @@ impl ModelIndex {
     /// [`PARALLEL_STARTS`] starts run in the calling thread (a few
     /// sub-millisecond ICPs gain nothing from a whole pool, and waking one
     /// can cost milliseconds on a busy CPU) or, with `two_cores`, the later
-    /// half of them on one of the pool's threads beside it
-    /// ([`threads::beside`]: one wake-up, none when the pool has a single
-    /// thread). Each start's result is its own either way.
+    /// half of them handed to one of the pool's threads first
+    /// ([`threads::hand_over`]; the caller takes them back and runs them
+    /// itself when no thread has started them by the time its own half is
+    /// done, so a thread slow to wake costs nothing). Each start's result
+    /// is its own either way.
     pub fn refine_each(
-        &self,
+        self: &Arc<Self>,
         cloud: &[Point3],
         starts: &[Pose],
         max_iterations: usize,
@@ -65,11 +69,16 @@ impl ModelIndex {
             threads::install(|| starts.par_iter().map(icp).collect())
         } else if two_cores && starts.len() >= 2 {
             let (own, job) = starts.split_at(starts.len().div_ceil(2));
-            let (mut results, later) = threads::beside(
-                || own.iter().map(icp).collect::<Vec<_>>(),
-                || job.iter().map(icp).collect::<Vec<_>>(),
-            );
-            results.extend(later);
+            // The job owns its inputs: the index shared, the cloud (a few
+            // hundred points) and its starts copied.
+            let (index, points, job) = (Arc::clone(self), cloud.to_vec(), job.to_vec());
+            let later = threads::hand_over(move || {
+                job.iter()
+                    .map(|start| index.refine(&points, *start, max_iterations, max_distance))
+                    .collect::<Vec<_>>()
+            });
+            let mut results: Vec<IcpResult> = own.iter().map(icp).collect();
+            results.extend(later.take());
             results
         } else {
             starts.iter().map(icp).collect()
@@ -243,7 +252,7 @@ pub(crate) mod tests {
     #[test]
     fn refining_several_starts_gives_each_start_its_own_result() {
         let model = bracket();
-        let index = ModelIndex::new(model.points.clone(), model.normals.clone());
+        let index = Arc::new(ModelIndex::new(model.points.clone(), model.normals.clone()));
         let truth = pose(
             Vector3::new(1.0, 0.2, -0.4),
             0.7,

@@ -107,30 +107,6 @@ pub fn install<R: Send>(op: impl FnOnce() -> R + Send) -> R {
     }
 }
 
-/// `own()` in the calling thread and `job()` on one of this process's
-/// pool's threads at the same time (`rayon::join` in the pool the caller
-/// works for when it is a pool's worker; one after the other when the pool
-/// has a single thread); returns both results once both are done. A panic
-/// in either reaches the caller.
-pub fn beside<A: Send, B: Send>(
-    own: impl FnOnce() -> A + Send,
-    job: impl FnOnce() -> B + Send,
-) -> (A, B) {
-    if rayon::current_thread_index().is_some() {
-        return rayon::join(own, job);
-    }
-    let pool = pool();
-    if pool.current_num_threads() < 2 {
-        return (own(), job());
-    }
-    let mut done = None;
-    let own = pool.in_place_scope(|scope| {
-        scope.spawn(|_| done = Some(job()));
-        own()
-    });
-    (own, done.expect("the scope waits for its job"))
-}
-
 /// A job [`hand_over`] gave one of the pool's threads, and its result.
 /// The caller asks for the result with [`Handed::take`]: it waits while a
 /// worker runs the job, and runs the job itself when no worker has started
@@ -245,32 +221,6 @@ mod tests {
             "{names:?}"
         );
         assert!(std::ptr::eq(pool(), pool()));
-    }
-
-    #[test]
-    fn beside_runs_the_job_on_a_pool_thread_while_the_caller_works() {
-        let name = || std::thread::current().name().unwrap_or("").to_string();
-        let (own, job) = beside(name, name);
-        assert_eq!(own, name());
-        if pool().current_num_threads() > 1 {
-            assert!(job.starts_with("edgepose-core-"), "{job}");
-        }
-        let panicked = std::panic::catch_unwind(|| beside(|| 1, || panic!("the job's own panic")));
-        assert!(panicked.is_err());
-        let panicked = std::panic::catch_unwind(|| beside(|| panic!("own panic"), || 1));
-        assert!(panicked.is_err());
-    }
-
-    #[test]
-    fn beside_on_a_single_worker_runs_both_there() {
-        let one = ThreadPoolBuilder::new()
-            .num_threads(1)
-            .thread_name(|_| "only".to_string())
-            .build()
-            .unwrap();
-        let name = || std::thread::current().name().unwrap_or("").to_string();
-        let (own, job) = one.install(|| beside(name, name));
-        assert_eq!((own.as_str(), job.as_str()), ("only", "only"));
     }
 
     /// Holds every worker of the process's pool until the returned sender
