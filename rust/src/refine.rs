@@ -303,6 +303,21 @@ pub(crate) mod tests {
             let alone: Vec<_> = each[..count].iter().map(key).collect();
             assert_eq!(split, alone, "split between two cores, {count} starts");
         }
+        // With every worker busy, the caller takes the handed half back and
+        // refines it itself: the same results.
+        {
+            let _one_at_a_time = threads::tests::HOLDING
+                .lock()
+                .unwrap_or_else(|p| p.into_inner());
+            let release = threads::tests::hold_the_workers();
+            let taken_back = index.refine_each(&cloud, &starts[..3], 25, 0.05, true);
+            drop(release);
+            let same = taken_back
+                .iter()
+                .zip(&each)
+                .all(|(a, b)| a.pose == b.pose && a.rmse.to_bits() == b.rmse.to_bits());
+            assert!(same, "the half taken back by the caller");
+        }
         // The near starts converge to the truth; the turned-over one fits worse.
         assert!(each[0].rmse < 1e-4 && each[1].rmse < 1e-4, "{each:?}");
         assert!(

@@ -204,7 +204,7 @@ impl<T> Drop for Handed<T> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use rayon::prelude::*;
 
@@ -225,7 +225,7 @@ mod tests {
 
     /// Holds every worker of the process's pool until the returned sender
     /// is dropped (or sent to); returns once all of them are held.
-    fn hold_the_workers() -> std::sync::mpsc::Sender<()> {
+    pub(crate) fn hold_the_workers() -> std::sync::mpsc::Sender<()> {
         let (release, held) = std::sync::mpsc::channel::<()>();
         let held = Arc::new(Mutex::new(held));
         let (started, wait_started) = std::sync::mpsc::channel();
@@ -243,7 +243,7 @@ mod tests {
     }
 
     // The tests below that hold the pool's workers run one at a time.
-    static HOLDING: Mutex<()> = Mutex::new(());
+    pub(crate) static HOLDING: Mutex<()> = Mutex::new(());
 
     #[test]
     fn a_handed_job_no_worker_started_is_run_by_the_caller() {
