@@ -242,7 +242,8 @@ pub(crate) mod tests {
         release
     }
 
-    // The tests below that hold the pool's workers run one at a time.
+    // The tests that hold the pool's workers (below, and `refine`'s) take
+    // this lock: they run one at a time.
     pub(crate) static HOLDING: Mutex<()> = Mutex::new(());
 
     #[test]
