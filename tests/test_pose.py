@@ -9,6 +9,7 @@ import time
 import edgepose
 import numpy as np
 import pytest
+import trimesh
 from edgepose.encoder import default_encoder
 from edgepose.eval import pose_errors, render_view
 from edgepose.model import read_mesh
@@ -91,6 +92,39 @@ def test_distinct_hypotheses_skip_near_duplicates():
     assert distinct_hypotheses(rotations, order, 3, 20.0).tolist() == [0, 2, 3]
     assert distinct_hypotheses(rotations, order[::-1], 2, 20.0).tolist() == [5, 4]
     assert distinct_hypotheses(rotations, order, 10, 20.0).tolist() == [0, 2, 3, 5]
+
+
+def test_a_near_tie_between_rival_hypotheses_goes_to_the_lower_polished_rmse():
+    """A block with a post on top, seen with the post in view: the true pose
+    and its half turn (the post on the wrong end) given equal coarse RMSEs,
+    the turn picked. Polishing both (the real ICP) tells them apart: the
+    true pose wins. No tie (the turn's RMSE well below), no polish
+    (``icp_iterations=0``) or ``tie_polish_within=0``: the pick stands."""
+    from edgepose.settings import DEFAULT_SETTINGS as S
+    from edgepose.stages import tie_broken
+    from edgepose.views import rotation_about
+
+    block = trimesh.creation.box([0.16, 0.06, 0.03])
+    post = trimesh.creation.box([0.04, 0.04, 0.04])
+    post.apply_translation([0.06, 0.0, 0.035])
+    mesh = trimesh.util.concatenate([block, post])
+    codebook = edgepose.build_codebook(mesh)
+    T = np.eye(4)
+    T[:3, :3] = rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(160))  # looking at the post's side
+    T[:3, 3] = [0.0, 0.0, 0.6]
+    query = prepare_query(render_view(mesh, T_cam_obj=T, seed=1).cloud, codebook)
+    half_turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi)
+    R = np.stack([T[:3, :3], T[:3, :3] @ half_turn])
+    t = np.stack([T[:3, 3] + r @ codebook.model.centre for r in R])  # model frame -> camera
+    starts, both = np.array([0, 1]), np.array([True, True])
+
+    def pick(rmse, settings=S):
+        return tie_broken(query, codebook, R, t, np.array(rmse), both, 1, starts, settings, {})
+
+    assert pick([1e-3, 1e-3]) == 0
+    assert pick([1e-3, 0.5e-3]) == 1
+    assert pick([1e-3, 1e-3], S.with_(tie_polish_within=0.0)) == 1
+    assert pick([1e-3, 1e-3], S.with_(icp_iterations=0)) == 1
 
 
 def test_same_input_same_pose_and_saved_codebook_same_pose(drill, tmp_path):

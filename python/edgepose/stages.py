@@ -397,13 +397,13 @@ def refine_hypotheses(
     """Stage 5: coarse ICP from the ``settings.hypotheses`` best distinct
     candidates, each scored again. Hypotheses that explain nearly as many
     points as the best and violate free space little more than the least
-    violating compete; the lowest ICP RMSE wins and is polished by a longer
-    ICP. None when no ICP found enough points.
+    violating compete; the lowest ICP RMSE wins (near ties: :func:`tie_broken`)
+    and is polished by a longer ICP. None when no ICP found enough points.
 
     ``icp_cache`` (a dict kept between calls on the same query and the same
     leading candidates, with the same settings) holds each start's ICP
-    results and the chosen one's polish and rival search, so a second,
-    wider search does not repeat the first one's."""
+    results, the polishes of near ties and the chosen one's polish and
+    rival search, so a second, wider search does not repeat the first one's."""
     cache: dict = {} if icp_cache is None else icp_cache
     d = codebook.model.diameter
     coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
@@ -433,6 +433,7 @@ def refine_hypotheses(
     free = scores.violation <= scores.violation[usable].min() + settings.hypothesis_free_space_margin
     competing = usable & explains & free
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
+    pick = tie_broken(query, codebook, hyp_R, hyp_t, rmse, competing, pick, starts, settings, cache)
     net = scores.net
     rivals = usable & (pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d)
     margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
@@ -458,6 +459,44 @@ def refine_hypotheses(
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
             best = best._replace(R=fine_R[0], t=fine_t[0], scores=fine)
     return best
+
+
+def tie_broken(
+    query: Query,
+    codebook: Codebook,
+    hyp_R: np.ndarray,
+    hyp_t: np.ndarray,
+    rmse: np.ndarray,
+    competing: np.ndarray,
+    pick: int,
+    starts: np.ndarray,
+    settings: EstimateSettings,
+    cache: dict,
+) -> int:
+    """Stage 5's pick among hypotheses (model frame → camera; ``rmse`` their
+    coarse ICP RMSEs) once near ties are broken: when ``competing`` rivals of
+    ``pick`` (more than ``RIVAL_DISTANCE`` × d away) have an RMSE within
+    ``settings.tie_polish_within`` of its, each of them and ``pick`` are
+    polished (:func:`polish`) and the lowest polished RMSE of a usable ICP
+    wins (the first on equal RMSEs). ``pick`` itself when there is no such
+    tie, no polish (``settings.icp_iterations`` 0) or no usable polish. The
+    polishes are kept in ``cache`` under the tied ``starts``."""
+    if settings.tie_polish_within <= 0 or settings.icp_iterations == 0:
+        return pick
+    d = codebook.model.diameter
+    rivals = pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d
+    tied = np.flatnonzero(competing & rivals & (rmse <= rmse[pick] * (1 + settings.tie_polish_within)))
+    if not len(tied):
+        return pick
+    tie = np.concatenate([[pick], tied])
+    key = ("tie", tuple(int(starts[h]) for h in tie))
+    if key not in cache:
+        cache[key] = polish(query, codebook, hyp_R[tie], hyp_t[tie], settings)
+    fine = cache[key]
+    usable = usable_icp(query, codebook, fine.inliers, fine.rmse, fine.translations, settings)
+    if not usable.any():
+        return pick
+    return int(tie[np.argmin(np.where(usable, fine.rmse, np.inf))])
 
 
 #: Hypotheses farther apart than this × d (ADD, or ADD-S for a symmetric
