@@ -97,6 +97,12 @@ def test_icp_results_are_typed_with_one_entry_per_start():
     split = index.refine(cloud, starts_R, starts_t, 30, 0.02, two_cores=True)
     for name in ("rotations", "translations", "iterations", "converged", "inliers", "rmse"):
         np.testing.assert_array_equal(getattr(split, name), getattr(icp, name))
+    second = icp.row(1)
+    assert len(second) == 1
+    for name in ("rotations", "translations", "iterations", "converged", "inliers", "rmse"):
+        np.testing.assert_array_equal(getattr(second, name), getattr(icp, name)[1:])
+    with pytest.raises(IndexError, match="ICP result 2 asked for, but there are 2"):
+        icp.row(2)
 
 
 def test_the_model_is_built_once_and_shared_by_maps_and_index():

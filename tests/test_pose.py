@@ -98,10 +98,12 @@ def test_a_near_tie_between_rival_hypotheses_goes_to_the_lower_polished_rmse():
     """A block with a post on top, seen with the post in view: the true pose
     and its half turn (the post on the wrong end) given equal coarse RMSEs,
     the turn picked. Polishing both (the real ICP) tells them apart: the
-    true pose wins. No tie (the turn's RMSE well below), no polish
-    (``icp_iterations=0``) or ``tie_polish_within=0``: the pick stands."""
+    true pose wins, and its polish is handed on, the same as polishing it
+    alone. No tie (the turn's RMSE well below), no polish
+    (``icp_iterations=0``) or ``tie_polish_within=0``: the pick stands,
+    unpolished."""
     from edgepose.settings import DEFAULT_SETTINGS as S
-    from edgepose.stages import tie_broken
+    from edgepose.stages import polish, tie_broken
     from edgepose.views import rotation_about
 
     block = trimesh.creation.box([0.16, 0.06, 0.03])
@@ -121,10 +123,14 @@ def test_a_near_tie_between_rival_hypotheses_goes_to_the_lower_polished_rmse():
     def pick(rmse, settings=S):
         return tie_broken(query, codebook, R, t, np.array(rmse), both, 1, starts, settings, {})
 
-    assert pick([1e-3, 1e-3]) == 0
-    assert pick([1e-3, 0.5e-3]) == 1
-    assert pick([1e-3, 1e-3], S.with_(tie_polish_within=0.0)) == 1
-    assert pick([1e-3, 1e-3], S.with_(icp_iterations=0)) == 1
+    won, fine = pick([1e-3, 1e-3])
+    assert won == 0 and len(fine) == 1
+    alone = polish(query, codebook, R[:1], t[:1], S)
+    for name in ("rotations", "translations", "inliers", "rmse"):
+        np.testing.assert_array_equal(getattr(fine, name), getattr(alone, name))
+    assert pick([1e-3, 0.5e-3]) == (1, None)
+    assert pick([1e-3, 1e-3], S.with_(tie_polish_within=0.0)) == (1, None)
+    assert pick([1e-3, 1e-3], S.with_(icp_iterations=0)) == (1, None)
 
 
 def test_same_input_same_pose_and_saved_codebook_same_pose(drill, tmp_path):

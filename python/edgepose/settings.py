@@ -103,9 +103,11 @@ class EstimateSettings:
     fraction of its RMSE: then each of those is polished too (the final ICP,
     ``icp_iterations`` on ``icp_points``) and the lowest polished RMSE wins.
     The coarse ICP's 256 points decide such near ties by noise on a small
-    fragment. Cost (in one process, 120 tuning-part views, ties polished
-    in 34): +0.3 ms at the paired median (clean +0.1, 40 % visible +1.4),
-    +1.9 ms on average. 0: never (the cheaper, less robust search).
+    fragment. The winner's polish is the stage's final polish (not made
+    twice). Cost (``benches/bench_confidence_cost.py --setting
+    tie_polish_within``, 120 tuning-part views, ties polished in 34):
+    +0.06 ms at the paired median (clean +0.04, 40 % visible +0.49),
+    +0.55 ms on average. 0: never (the cheaper, less robust search).
     Tuning parts (6 × 20 views a level, 2026-11-27): all eleven levels 96.0
     → 96.9 % correct, none worse; visible20 83.3 → 86.7 %, visible40 90.8 →
     91.7 %, visible70 95.0 → 96.7 %, occluded30_spill5 and partial 95.8 →

@@ -433,7 +433,7 @@ def refine_hypotheses(
     free = scores.violation <= scores.violation[usable].min() + settings.hypothesis_free_space_margin
     competing = usable & explains & free
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
-    pick = tie_broken(query, codebook, hyp_R, hyp_t, rmse, competing, pick, starts, settings, cache)
+    pick, tie_polish = tie_broken(query, codebook, hyp_R, hyp_t, rmse, competing, pick, starts, settings, cache)
     net = scores.net
     rivals = usable & (pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d)
     margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
@@ -441,7 +441,7 @@ def refine_hypotheses(
     rmse_ratio = float(rmse[pick] / rmse[competitors].min()) if competitors.any() else 0.0
     chosen = int(starts[pick])
     if ("fine", chosen) not in cache:
-        cache["fine", chosen] = polished(query, codebook, hyp_R[pick], hyp_t[pick], settings)
+        cache["fine", chosen] = polished(query, codebook, hyp_R[pick], hyp_t[pick], settings, done=tie_polish)
     fine_icp, rival = cache["fine", chosen]
     best = Refined(
         chosen,
@@ -472,31 +472,31 @@ def tie_broken(
     starts: np.ndarray,
     settings: EstimateSettings,
     cache: dict,
-) -> int:
+) -> tuple[int, _core.IcpResults | None]:
     """Stage 5's pick among hypotheses (model frame → camera; ``rmse`` their
-    coarse ICP RMSEs) once near ties are broken: when ``competing`` rivals of
-    ``pick`` (more than ``RIVAL_DISTANCE`` × d away) have an RMSE within
+    coarse ICP RMSEs) once near ties are broken, and the pick's polish when
+    one was made: when ``competing`` rivals of ``pick`` (more than
+    ``RIVAL_DISTANCE`` × d away) have an RMSE within
     ``settings.tie_polish_within`` of its, each of them and ``pick`` are
     polished (:func:`polish`) and the lowest polished RMSE of a usable ICP
     wins (the first on equal RMSEs). ``pick`` itself when there is no such
     tie, no polish (``settings.icp_iterations`` 0) or no usable polish. The
     polishes are kept in ``cache`` under the tied ``starts``."""
     if settings.tie_polish_within <= 0 or settings.icp_iterations == 0:
-        return pick
+        return pick, None
     d = codebook.model.diameter
     rivals = pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d
     tied = np.flatnonzero(competing & rivals & (rmse <= rmse[pick] * (1 + settings.tie_polish_within)))
     if not len(tied):
-        return pick
+        return pick, None
     tie = np.concatenate([[pick], tied])
     key = ("tie", tuple(int(starts[h]) for h in tie))
     if key not in cache:
         cache[key] = polish(query, codebook, hyp_R[tie], hyp_t[tie], settings)
     fine = cache[key]
     usable = usable_icp(query, codebook, fine.inliers, fine.rmse, fine.translations, settings)
-    if not usable.any():
-        return pick
-    return int(tie[np.argmin(np.where(usable, fine.rmse, np.inf))])
+    won = int(np.argmin(np.where(usable, fine.rmse, np.inf))) if usable.any() else 0
+    return int(tie[won]), fine.row(won)
 
 
 #: Hypotheses farther apart than this × d (ADD, or ADD-S for a symmetric
@@ -568,10 +568,16 @@ class RivalSearch:
 
 
 def polished(
-    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings
+    query: Query,
+    codebook: Codebook,
+    R: np.ndarray,
+    t: np.ndarray,
+    settings: EstimateSettings,
+    done: _core.IcpResults | None = None,
 ) -> tuple[_core.IcpResults | None, RivalSearch]:
     """Pose ``(R, t)``'s final ICP :func:`polish` (None when
-    ``settings.icp_iterations`` is 0) and the search for its turned rival
+    ``settings.icp_iterations`` is 0; ``done`` when given, a polish of the
+    pose already made: a near tie's) and the search for its turned rival
     (:func:`flip_rival`, from the pose before the polish: the rival is
     settled by ICP anyway), handed to another core before the polish starts
     when ``settings.flip_rival_beside_polish``, else found when first
@@ -580,6 +586,8 @@ def polished(
     rival = RivalSearch(query, codebook, R, t, settings, beside=beside)
     if settings.icp_iterations == 0:
         return None, rival
+    if done is not None:
+        return done, rival
     return polish(query, codebook, R[None], t[None], settings), rival
 
 

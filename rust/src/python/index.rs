@@ -5,7 +5,7 @@ use numpy::{
     PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
     PyReadonlyArray3, PyUntypedArrayMethods,
 };
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex};
 
@@ -498,6 +498,19 @@ pub struct PyIcpResults {
 impl PyIcpResults {
     fn __len__(&self) -> usize {
         self.results.len()
+    }
+
+    /// The outcome of start pose ``index`` alone, as results of one.
+    fn row(&self, index: usize) -> PyResult<Self> {
+        let result = self.results.get(index).ok_or_else(|| {
+            PyIndexError::new_err(format!(
+                "ICP result {index} asked for, but there are {}",
+                self.results.len()
+            ))
+        })?;
+        Ok(Self {
+            results: vec![*result],
+        })
     }
 
     /// (H, 3, 3) float64 refined rotations, model → camera.
