@@ -14,7 +14,8 @@ from edgepose.cloud import dilate, erode
 from edgepose.eval import LINEMOD_CAMERA, STRESS_LEVELS, Camera, SceneView, Stress, render_scene, render_view
 from edgepose.eval.render import rasterize_depth
 from edgepose.eval.scenes import noise_sigma
-from scipy.ndimage import distance_transform_edt
+from edgepose.eval.stress import HOLE_PATCHES
+from scipy.ndimage import distance_transform_edt, label
 
 #: LINEMOD's camera at a quarter of its resolution: 160 × 120.
 SMALL = Camera(572.4 / 4, 573.6 / 4, 325.3 / 4, 242.0 / 4, 160, 120)
@@ -34,7 +35,7 @@ def alone(mesh: trimesh.Trimesh, view: SceneView) -> np.ndarray:
 
 def test_levels_are_named_and_ordered():
     assert list(STRESS_LEVELS)[:4] == ["clean", "visible70", "visible40", "visible20"]
-    for name in ["spill2", "spill5", "spill8", "eroded3", "partial", "noise_far", "occluded30_spill5"]:
+    for name in ["spill2", "spill5", "spill8", "eroded3", "partial", "noise_far", "occluded30_spill5", "sensor_holes"]:
         assert STRESS_LEVELS[name].name == name
     with pytest.raises(dataclasses.FrozenInstanceError):
         STRESS_LEVELS["clean"].visible = 0.5
@@ -42,6 +43,8 @@ def test_levels_are_named_and_ordered():
         Stress("bad", noise="gaussian")
     with pytest.raises(ValueError):
         Stress("bad", spill_px=3, background=False)
+    with pytest.raises(ValueError):
+        Stress("bad", holes=0.1, background=False)
 
 
 def test_clean_level_is_render_views_view(box):
@@ -104,6 +107,33 @@ def test_partial_mask_misses_a_quarter(box):
         view = render_scene(box, "partial", seed, camera=SMALL)
         assert not np.any(view.mask & ~view.true_mask)
         assert view.mask.sum() / view.true_mask.sum() == pytest.approx(0.75, abs=0.05)
+
+
+def test_holes_take_depth_from_round_patches_of_the_object(box):
+    holes = Stress("holes", holes=0.15, dropout=0.0)
+    for seed in SEEDS:
+        view = render_scene(box, holes, seed, camera=SMALL)
+        lost = view.true_mask & (view.depth == 0)
+        assert lost.sum() / view.true_mask.sum() == pytest.approx(0.15, abs=0.01)
+        assert label(lost)[1] <= HOLE_PATCHES  # patches (touching ones merge), not scattered pixels
+        assert (view.depth[~view.true_mask] > 0).all()  # the background keeps its depth
+        # The cloud is the measured part of the mask: the holes are missing from it.
+        assert len(view.cloud) == (view.mask & (view.depth > 0)).sum()
+
+
+def test_steep_surfaces_lose_their_depth():
+    plate = trimesh.creation.box(extents=[0.3, 0.3, 0.002])
+    steep = Stress("steep", grazing_deg=75.0, dropout=0.0)
+    kept = {}
+    for tilt in (60, 80):
+        T = np.eye(4)
+        T[:3, :3] = trimesh.transformations.rotation_matrix(np.radians(tilt), [0, 1, 0])[:3, :3]
+        T[2, 3] = 0.8
+        view = render_scene(plate, steep, 0, T_cam_obj=T, camera=SMALL)
+        inner = erode(view.true_mask, 2)
+        assert inner.sum() > 50
+        kept[tilt] = (view.depth[inner] > 0).mean()
+    assert kept[60] > 0.95 and kept[80] < 0.05
 
 
 def test_flying_pixels_lie_between_object_and_background(box):

@@ -130,6 +130,21 @@ def test_estimate_on_stressed_scenes(drill, stress):
     assert correct >= 4, f"{correct}/6 correct at {stress}"
 
 
+def test_missing_depth_beside_the_object_is_not_free_space(drill):
+    # Patches without depth on the object (dark or shiny) and its steep rim
+    # lost: the true pose's model points there are unknown space, not points
+    # standing in front of the background measured just beyond them.
+    mesh, codebook = drill
+    points = codebook.model.mesh_points
+    violations = []
+    for seed in range(6):
+        view = render_scene(mesh, "sensor_holes", seed=seed)
+        pose = edgepose.estimate(view.cloud, codebook, depth=view.depth, K=view.K, depth_scale=1.0)
+        if pose_errors(points, pose.matrix, view.T_cam_obj, codebook.model.diameter, False).correct_add_or_s:
+            violations.append(pose.evidence["scene_violation"])
+    assert len(violations) >= 5 and max(violations) < 0.005, violations
+
+
 def test_poses_far_from_the_observed_points_are_not_plausible(drill):
     mesh, codebook = drill
     view = edgepose.eval.render_view(mesh, seed=4)

@@ -96,22 +96,20 @@ impl SceneDepth {
     }
 
     /// Whether `p` (camera frame) stands in front of every measured depth
-    /// within `radius` pixels of its pixel by more than `tolerance` metres
-    /// (and something was measured there): the model would hide what the
-    /// camera saw. Stops at the first measurement that is not behind it.
+    /// within `radius` pixels of its pixel by more than `tolerance` metres,
+    /// its own pixel measured: the model would hide what the camera saw.
+    /// A pixel without a measurement (a dark or shiny patch, a steep face, an
+    /// edge the sensor lost) is unknown space, even beside measured
+    /// background. Stops at the first measurement that is not behind it.
     pub fn in_front(&self, p: &Vector3<f64>, tolerance: f64) -> bool {
         let Some((u, v)) = self.pixel(p) else {
             return false;
         };
-        let limit = (p.z + tolerance) as f32;
-        let mut measured = false;
-        for z in self.around(u, v) {
-            if z <= limit {
-                return false;
-            }
-            measured |= z.is_finite();
+        if !self.depth[v * self.width + u].is_finite() {
+            return false;
         }
-        measured
+        let limit = (p.z + tolerance) as f32;
+        self.around(u, v).all(|z| z > limit)
     }
 }
 
@@ -681,5 +679,12 @@ mod tests {
             !unmeasured.in_front(&Vector3::new(-0.45, -0.45, 1.0), 0.01),
             "nothing measured"
         );
+        // A hole in the depth (no measurement at the point's own pixel, the
+        // background measured beside it) is unknown space too.
+        let mut holed = depth.clone();
+        holed[50 * 100 + 54] = 0.0;
+        let hole = SceneDepth::new(&holed, 100, camera, 2);
+        assert!(!hole.in_front(&Vector3::new(0.032, 0.0, 0.8), 0.01));
+        assert!(hole.in_front(&Vector3::new(0.024, 0.0, 0.8), 0.01));
     }
 }

@@ -18,7 +18,7 @@ import numpy as np
 
 from edgepose.cloud import cloud_from_depth, dilate, erode
 from edgepose.eval.render import LINEMOD_CAMERA, Camera, random_pose, rasterize_depth, render_view
-from edgepose.eval.stress import STRESS_LEVELS, Stress, noise_sigma
+from edgepose.eval.stress import HOLE_PATCHES, STRESS_LEVELS, Stress, noise_sigma
 
 if TYPE_CHECKING:
     import trimesh
@@ -183,6 +183,10 @@ def render_scene(
         depth[measured] = np.round(depth[measured] / stress.quantization) * stress.quantization
     if stress.dropout > 0:
         measured &= rng.random(depth.shape) >= stress.dropout
+    if stress.grazing_deg < 90.0:
+        measured &= _viewing_angle(ideal, camera) <= stress.grazing_deg
+    if stress.holes > 0 and visible.sum() >= HOLE_PATCHES:
+        measured &= ~_holes(visible, stress.holes, rng)
     measured &= (depth > 0) & (depth < 65.535)
     depth = np.where(measured, depth, 0.0).astype(np.float32)
     depth_mm = np.round(depth.astype(np.float64) * 1000.0).astype(np.uint16)
@@ -331,6 +335,34 @@ def _primitive(rng: np.random.Generator, meshes: list) -> trimesh.Trimesh:
     if kind == 0:
         return trimesh.creation.box(extents=rng.uniform(0.04, 0.15, size=3))
     return trimesh.creation.cylinder(radius=rng.uniform(0.02, 0.05), height=rng.uniform(0.06, 0.2), sections=24)
+
+
+def _viewing_angle(z: np.ndarray, camera: Camera) -> np.ndarray:
+    """(H, W) degrees between each pixel's viewing ray and the surface's
+    normal there, from the noise-free depth ``z`` (metres, inf where empty)
+    by central differences of the back-projected points: near 90 at a depth
+    edge, where the difference spans two surfaces; 90 where a neighbour is
+    empty."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1)
+    with np.errstate(invalid="ignore"):
+        points = rays * z.astype(np.float64)[..., None]
+        along_v, along_u = np.gradient(points, axis=(0, 1))
+        normal = np.cross(along_u, along_v)
+        cos = np.abs((normal * rays).sum(-1)) / (np.linalg.norm(normal, axis=-1) * np.linalg.norm(rays, axis=-1))
+    return np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=0.0), 0.0, 1.0)))
+
+
+def _holes(visible: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) bool: ``fraction`` of the ``visible`` pixels, those nearest to
+    ``HOLE_PATCHES`` of them drawn at random: round patches."""
+    rows, cols = np.nonzero(visible)
+    picked = rng.choice(len(rows), HOLE_PATCHES, replace=False)
+    distance = np.min(np.hypot(rows[:, None] - rows[picked], cols[:, None] - cols[picked]), axis=1)
+    hole = np.zeros_like(visible)
+    lost = distance <= np.quantile(distance, fraction)
+    hole[rows[lost], cols[lost]] = True
+    return hole
 
 
 def _spread(z: np.ndarray, steps: int) -> np.ndarray:

@@ -46,6 +46,12 @@ class Stress:
     """Metres: depth is rounded to multiples of this."""
     dropout: float = 0.02
     """Probability (0–1) that a pixel has no measurement."""
+    holes: float = 0.0
+    """Fraction (0–1) of the object's visible pixels with no measurement, in ``HOLE_PATCHES`` round
+    patches about random points of it: a dark or shiny part of the surface."""
+    grazing_deg: float = 90.0
+    """Degrees: pixels whose surface (any surface of the scene) is seen farther than this from face-on
+    have no measurement, as a real sensor loses depth on steep faces and at depth edges; 90: none lost."""
     background: bool = True
     """Whether a support plane and 1–3 neighbouring objects are rendered; ``False`` (only with no other
     stress) renders exactly :func:`edgepose.eval.render_view`'s view."""
@@ -55,12 +61,16 @@ class Stress:
             raise ValueError(f"unknown noise model {self.noise!r}; use 'constant' or 'kinect'")
         plain = (
             self.visible >= 1.0
-            and not (self.spill_px or self.erode_px or self.cut or self.flying or self.lateral_px)
+            and not (self.spill_px or self.erode_px or self.cut or self.flying or self.lateral_px or self.holes)
+            and self.grazing_deg >= 90.0
             and self.noise == "constant"
         )
         if not (self.background or plain):
             raise ValueError("background=False renders render_view's plain view: no other stress allowed")
 
+
+#: Patches of a level's ``holes``.
+HOLE_PATCHES = 3
 
 #: The benchmark's stress levels, in report order.
 STRESS_LEVELS: dict[str, Stress] = {
@@ -86,6 +96,12 @@ STRESS_LEVELS: dict[str, Stress] = {
         ),
         Stress(
             "occluded30_spill5", "70 % visible and mask grown 5 px (1/4 mixed)", visible=0.7, spill_px=5, flying=0.25
+        ),
+        Stress(
+            "sensor_holes",
+            "15 % of the object without depth in 3 patches (dark or shiny); no depth beyond 75° from face-on",
+            holes=0.15,
+            grazing_deg=75.0,
         ),
     ]
 }
