@@ -184,7 +184,7 @@ def render_scene(
     if stress.dropout > 0:
         measured &= rng.random(depth.shape) >= stress.dropout
     if stress.grazing_deg < 90.0:
-        measured &= _viewing_angle(ideal, camera) <= stress.grazing_deg
+        measured &= _viewing_angle(ideal, rays) <= stress.grazing_deg
     if stress.holes > 0 and visible.sum() >= HOLE_PATCHES:
         measured &= ~_holes(visible, stress.holes, rng)
     measured &= (depth > 0) & (depth < 65.535)
@@ -337,14 +337,12 @@ def _primitive(rng: np.random.Generator, meshes: list) -> trimesh.Trimesh:
     return trimesh.creation.cylinder(radius=rng.uniform(0.02, 0.05), height=rng.uniform(0.06, 0.2), sections=24)
 
 
-def _viewing_angle(z: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W) degrees between each pixel's viewing ray and the surface's
-    normal there, from the noise-free depth ``z`` (metres, inf where empty)
-    by central differences of the back-projected points: near 90 at a depth
-    edge, where the difference spans two surfaces; 90 where a neighbour is
-    empty."""
-    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
-    rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1)
+def _viewing_angle(z: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """(H, W) degrees between each pixel's viewing ray (``rays``, (H, W, 3)
+    at z = 1) and the surface's normal there, from the noise-free depth
+    ``z`` (metres, inf where empty) by central differences of the
+    back-projected points: near 90 at a depth edge, where the difference
+    spans two surfaces; 90 where a neighbour is empty."""
     with np.errstate(invalid="ignore"):
         points = rays * z.astype(np.float64)[..., None]
         along_v, along_u = np.gradient(points, axis=(0, 1))
