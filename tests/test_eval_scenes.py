@@ -14,7 +14,7 @@ from edgepose.cloud import dilate, erode
 from edgepose.eval import LINEMOD_CAMERA, STRESS_LEVELS, Camera, SceneView, Stress, render_scene, render_view
 from edgepose.eval.render import rasterize_depth
 from edgepose.eval.scenes import noise_sigma
-from edgepose.eval.stress import HOLE_PATCHES
+from edgepose.eval.stress import HOLE_PATCHES, TABLE_ELEVATION_DEG
 from scipy.ndimage import distance_transform_edt, label
 
 #: LINEMOD's camera at a quarter of its resolution: 160 × 120.
@@ -35,7 +35,17 @@ def alone(mesh: trimesh.Trimesh, view: SceneView) -> np.ndarray:
 
 def test_levels_are_named_and_ordered():
     assert list(STRESS_LEVELS)[:4] == ["clean", "visible70", "visible40", "visible20"]
-    for name in ["spill2", "spill5", "spill8", "eroded3", "partial", "noise_far", "occluded30_spill5", "sensor_holes"]:
+    for name in [
+        "spill2",
+        "spill5",
+        "spill8",
+        "eroded3",
+        "partial",
+        "noise_far",
+        "occluded30_spill5",
+        "sensor_holes",
+        "on_table",
+    ]:
         assert STRESS_LEVELS[name].name == name
     with pytest.raises(dataclasses.FrozenInstanceError):
         STRESS_LEVELS["clean"].visible = 0.5
@@ -45,6 +55,8 @@ def test_levels_are_named_and_ordered():
         Stress("bad", spill_px=3, background=False)
     with pytest.raises(ValueError):
         Stress("bad", holes=0.1, background=False)
+    with pytest.raises(ValueError):
+        Stress("bad", resting=True, background=False)
 
 
 def test_clean_level_is_render_views_view(box):
@@ -209,3 +221,30 @@ def test_ycb_scene_renders_fast(ycb_dir):
         times.append(time.perf_counter() - start)
         assert len(view.cloud) > 200
     assert np.median(times) < 1.0
+
+
+def test_a_resting_object_lies_on_a_face_on_the_table_it_touches(box):
+    table = STRESS_LEVELS["on_table"]
+    assert table.resting and table.spill_px == 5
+    low, high = np.radians(TABLE_ELEVATION_DEG)
+    for seed in SEEDS:
+        view = render_scene(box, table, seed, camera=SMALL)
+        # The box lies on a face: one of its axes, up or down, is the table's
+        # normal, (0, −cos e, −sin e) in the camera frame for a camera looking
+        # down on the table from e above it.
+        axes = np.concatenate([view.T_cam_obj[:3, :3].T, -view.T_cam_obj[:3, :3].T])
+        up = [a for a in axes if abs(a[0]) < 1e-9 and a[1] < 0 and a[2] < 0]
+        assert len(up) == 1
+        assert low - 1e-9 <= np.arctan2(-up[0][2], -up[0][1]) <= high + 1e-9
+        # The table meets the silhouette at the object's own depth (a wall
+        # stands 2 cm or more behind it): where it touches.
+        _, (r, c) = distance_transform_edt(~view.true_mask, return_indices=True)
+        ring = dilate(view.true_mask, 1) & ~view.true_mask
+        assert (np.abs(view.ideal_depth - view.ideal_depth[r, c])[ring] < 0.003).sum() >= 3
+        wall = render_scene(box, "spill5", seed, camera=SMALL)
+        _, (r, c) = distance_transform_edt(~wall.true_mask, return_indices=True)
+        ring = dilate(wall.true_mask, 1) & ~wall.true_mask
+        assert (np.abs(wall.ideal_depth - wall.ideal_depth[r, c])[ring] < 0.003).sum() == 0
+    a, b = render_scene(box, table, 7, camera=SMALL), render_scene(box, table, 7, camera=SMALL)
+    np.testing.assert_array_equal(a.depth, b.depth)
+    np.testing.assert_array_equal(a.T_cam_obj, b.T_cam_obj)

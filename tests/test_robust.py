@@ -116,7 +116,7 @@ def test_free_space_separates_the_true_pose_from_a_turned_over_one(drill):
     assert violation[1] > 0.2, violation
 
 
-@pytest.mark.parametrize("stress", ["visible70", "spill5", "occluded30_spill5", "sensor_holes"])
+@pytest.mark.parametrize("stress", ["visible70", "spill5", "occluded30_spill5", "sensor_holes", "on_table"])
 def test_estimate_on_stressed_scenes(drill, stress):
     mesh, codebook = drill
     points = codebook.model.mesh_points

@@ -85,7 +85,7 @@ def evaluate(
         str,
         typer.Option(
             help="Stress level of the views (edgepose.eval.STRESS_LEVELS): clean, visible70, visible40, visible20, "
-            "spill2, spill5, spill8, eroded3, partial, noise_far, occluded30_spill5, sensor_holes."
+            "spill2, spill5, spill8, eroded3, partial, noise_far, occluded30_spill5, sensor_holes, on_table."
         ),
     ] = "clean",
     reliability: Annotated[

@@ -18,7 +18,7 @@ import numpy as np
 
 from edgepose.cloud import cloud_from_depth, dilate, erode
 from edgepose.eval.render import LINEMOD_CAMERA, Camera, random_pose, rasterize_depth, render_view
-from edgepose.eval.stress import HOLE_PATCHES, STRESS_LEVELS, Stress, noise_sigma
+from edgepose.eval.stress import HOLE_PATCHES, STRESS_LEVELS, TABLE_ELEVATION_DEG, Stress, noise_sigma
 
 if TYPE_CHECKING:
     import trimesh
@@ -76,7 +76,9 @@ def render_scene(
     :func:`render_view` draws it (same seed and distance → same pose).
 
     Scene: a support plane 2–6 cm behind the object's farthest point, facing
-    the camera tilted by up to 30°; 1–3 neighbours (boxes, cylinders or
+    the camera tilted by up to 30° (when ``stress.resting``: a table under the
+    object, touching it, seen from ``TABLE_ELEVATION_DEG`` above, the object
+    drawn in one of its stable poses on it); 1–3 neighbours (boxes, cylinders or
     ``neighbours`` meshes) beside the object, never in front of it; when
     ``stress.visible < 1`` an occluder (box, cylinder or one of
     ``occluders``, scaled to span the object) between camera and object, slid
@@ -93,20 +95,32 @@ def render_scene(
     rng = np.random.default_rng(seed)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     box_centre = vertices.min(0) / 2 + vertices.max(0) / 2
+    if stress.resting:  # the table's normal (camera frame), seen from the elevation drawn
+        elevation = np.radians(rng.uniform(*TABLE_ELEVATION_DEG))
+        up = np.array([0.0, -np.cos(elevation), -np.sin(elevation)])
     if T_cam_obj is None:
         T_cam_obj = random_pose(rng, camera, stress.distance, centre=box_centre)
+        if stress.resting:  # same box centre in the camera frame, turned to rest on the table
+            R = _resting_rotation(mesh, up, rng)
+            T_cam_obj[:3, 3] += (T_cam_obj[:3, :3] - R) @ box_centre
+            T_cam_obj[:3, :3] = R
     T_cam_obj = np.asarray(T_cam_obj, dtype=np.float64)
     posed = vertices @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
     centre = T_cam_obj[:3, :3] @ box_centre + T_cam_obj[:3, 3]
     z_obj = rasterize_depth(posed, np.asarray(mesh.faces), camera)
     alone = np.isfinite(z_obj)
 
-    # Support plane, analytic: n·x = offset, n towards the camera tilted ≤ 30°.
-    toward = -centre / np.linalg.norm(centre)
-    axis = np.cross(toward, rng.normal(size=3))
-    tilt = tf.rotation_matrix(np.radians(rng.uniform(0, 30)), axis / np.linalg.norm(axis))[:3, :3]
-    normal = tilt @ toward
-    offset = float((posed @ normal).min() - rng.uniform(0.02, 0.06))
+    # Support plane, analytic: n·x = offset. A table under the object touching
+    # its lowest point, or a wall 2–6 cm behind it facing the camera tilted ≤ 30°.
+    if stress.resting:
+        normal = up
+        offset = float((posed @ normal).min())
+    else:
+        toward = -centre / np.linalg.norm(centre)
+        axis = np.cross(toward, rng.normal(size=3))
+        tilt = tf.rotation_matrix(np.radians(rng.uniform(0, 30)), axis / np.linalg.norm(axis))[:3, :3]
+        normal = tilt @ toward
+        offset = float((posed @ normal).min() - rng.uniform(0.02, 0.06))
     v, u = np.mgrid[0 : camera.height, 0 : camera.width]
     rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -335,6 +349,45 @@ def _primitive(rng: np.random.Generator, meshes: list) -> trimesh.Trimesh:
     if kind == 0:
         return trimesh.creation.box(extents=rng.uniform(0.04, 0.15, size=3))
     return trimesh.creation.cylinder(radius=rng.uniform(0.02, 0.05), height=rng.uniform(0.06, 0.2), sections=24)
+
+
+def _resting_rotation(mesh: trimesh.Trimesh, up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(3, 3) rotation object → camera of ``mesh`` resting on a table whose
+    normal is ``up`` (camera frame): one of its stable poses
+    (:func:`_stable_poses`), drawn by how likely it lands in it, turned
+    about the normal by a random angle."""
+    import trimesh.transformations as tf
+
+    rests, chances = _stable_poses(mesh)
+    rest = rests[rng.choice(len(rests), p=chances)]  # object → table, z up
+    spin = tf.rotation_matrix(rng.uniform(0, 2 * np.pi), [0.0, 0.0, 1.0])[:3, :3]
+    across = np.array([1.0, 0.0, 0.0])  # the table's x axis: the image's rows
+    table = np.column_stack([across, np.cross(up, across), up])  # table → camera
+    return table @ spin @ rest
+
+
+#: :func:`_stable_poses` by ``mesh.identifier_hash`` (0.1–1 s each to find).
+_STABLE_POSES: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _stable_poses(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 3, 3) rotations object → table (z up) in which ``mesh`` rests on
+    a face of its convex hull, and (P,) the chance it lands in each
+    (``trimesh.poses.compute_stable_poses`` about its centre of mass, or the
+    hull's when that lies outside the hull)."""
+    import trimesh
+
+    key = mesh.identifier_hash
+    if key not in _STABLE_POSES:
+        hull = mesh.convex_hull
+        centre = np.asarray(mesh.center_mass, dtype=np.float64)
+        if not np.all(np.einsum("ij,ij->i", centre - hull.triangles_center, hull.face_normals) < 0):
+            centre = np.asarray(hull.center_mass, dtype=np.float64)
+        rests, chances = trimesh.poses.compute_stable_poses(hull, center_mass=centre)
+        if len(_STABLE_POSES) >= 256:
+            _STABLE_POSES.clear()
+        _STABLE_POSES[key] = (np.asarray(rests)[:, :3, :3], np.asarray(chances) / np.sum(chances))
+    return _STABLE_POSES[key]
 
 
 def _viewing_angle(z: np.ndarray, rays: np.ndarray) -> np.ndarray:

@@ -52,6 +52,10 @@ class Stress:
     grazing_deg: float = 90.0
     """Degrees: pixels whose surface (any surface of the scene) is seen farther than this from face-on
     have no measurement, as a real sensor loses depth on steep faces and at depth edges; 90: none lost."""
+    resting: bool = False
+    """Whether the object rests on the support plane, a table seen from ``TABLE_ELEVATION_DEG`` above,
+    in one of its stable poses (given a pose: touching the plane at its lowest point), instead of
+    standing 2–6 cm in front of a wall: a spilled mask then takes table points that meet the object."""
     background: bool = True
     """Whether a support plane and 1–3 neighbouring objects are rendered; ``False`` (only with no other
     stress) renders exactly :func:`edgepose.eval.render_view`'s view."""
@@ -61,7 +65,15 @@ class Stress:
             raise ValueError(f"unknown noise model {self.noise!r}; use 'constant' or 'kinect'")
         plain = (
             self.visible >= 1.0
-            and not (self.spill_px or self.erode_px or self.cut or self.flying or self.lateral_px or self.holes)
+            and not (
+                self.spill_px
+                or self.erode_px
+                or self.cut
+                or self.flying
+                or self.lateral_px
+                or self.holes
+                or self.resting
+            )
             and self.grazing_deg >= 90.0
             and self.noise == "constant"
         )
@@ -71,6 +83,8 @@ class Stress:
 
 #: Patches of a level's ``holes``.
 HOLE_PATCHES = 3
+#: Degrees: range of the angle between the camera's line of sight to a ``resting`` object and the table.
+TABLE_ELEVATION_DEG = (30.0, 70.0)
 
 #: The benchmark's stress levels, in report order.
 STRESS_LEVELS: dict[str, Stress] = {
@@ -102,6 +116,13 @@ STRESS_LEVELS: dict[str, Stress] = {
             "15 % of the object without depth in 3 patches (dark or shiny); no depth beyond 75° from face-on",
             holes=0.15,
             grazing_deg=75.0,
+        ),
+        Stress(
+            "on_table",
+            "resting on a table seen from 30-70° above; mask grown 5 px onto the table and around (1/4 mixed)",
+            resting=True,
+            spill_px=5,
+            flying=0.25,
         ),
     ]
 }
