@@ -1,6 +1,6 @@
-"""Stressed synthetic scenes: the object in front of a support plane beside
-other objects, occluded by solid shapes, seen by a noisy sensor and cut out
-by an imperfect detector mask.
+"""Stressed synthetic scenes: the object in front of a support plane (or
+resting on it, a table) beside other objects, occluded by solid shapes,
+seen by a noisy sensor and cut out by an imperfect detector mask.
 
 :func:`render_scene` renders one view of a mesh at one stress level
 (:data:`edgepose.eval.stress.STRESS_LEVELS`, re-exported here). Units are
