@@ -248,3 +248,10 @@ def test_a_resting_object_lies_on_a_face_on_the_table_it_touches(box):
     a, b = render_scene(box, table, 7, camera=SMALL), render_scene(box, table, 7, camera=SMALL)
     np.testing.assert_array_equal(a.depth, b.depth)
     np.testing.assert_array_equal(a.T_cam_obj, b.T_cam_obj)
+    # A given pose is kept, and the table still touches the object at its lowest point.
+    given = render_scene(box, "spill5", 3, camera=SMALL).T_cam_obj
+    view = render_scene(box, table, 3, T_cam_obj=given, camera=SMALL)
+    np.testing.assert_array_equal(view.T_cam_obj, given)
+    _, (r, c) = distance_transform_edt(~view.true_mask, return_indices=True)
+    ring = dilate(view.true_mask, 1) & ~view.true_mask
+    assert (np.abs(view.ideal_depth - view.ideal_depth[r, c])[ring] < 0.003).sum() >= 1
