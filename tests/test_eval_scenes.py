@@ -4,6 +4,7 @@ against the geometry the renderer was given."""
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 
 import edgepose
@@ -255,3 +256,21 @@ def test_a_resting_object_lies_on_a_face_on_the_table_it_touches(box):
     _, (r, c) = distance_transform_edt(~view.true_mask, return_indices=True)
     ring = dilate(view.true_mask, 1) & ~view.true_mask
     assert (np.abs(view.ideal_depth - view.ideal_depth[r, c])[ring] < 0.003).sum() >= 1
+
+
+def test_a_sheet_without_volume_lies_flat_on_the_table():
+    # Its centre of mass is undefined (NaN): trimesh's stable poses would
+    # search forever for a centre inside its hull, so it is laid flat instead.
+    sheet = trimesh.Trimesh(
+        vertices=[[0, 0, 0], [0.12, 0, 0], [0, 0.1, 0], [0.12, 0.1, 0]], faces=[[0, 1, 2], [1, 3, 2]]
+    )
+    views = []
+    worker = threading.Thread(
+        target=lambda: views.append(render_scene(sheet, "on_table", 2, camera=SMALL)), daemon=True
+    )
+    worker.start()
+    worker.join(60)
+    assert not worker.is_alive() and len(views) == 1
+    normal = views[0].T_cam_obj[:3, :3] @ [0.0, 0.0, 1.0]  # the sheet's normal, camera frame
+    assert abs(normal[0]) < 1e-9 and np.linalg.norm(normal[1:]) == pytest.approx(1.0)  # the table's, up or down
+    assert len(views[0].cloud) > 50

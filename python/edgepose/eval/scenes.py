@@ -374,19 +374,30 @@ def _stable_poses(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     """(P, 3, 3) rotations object → table (z up) in which ``mesh`` rests on
     a face of its convex hull, and (P,) the chance it lands in each
     (``trimesh.poses.compute_stable_poses`` about its centre of mass, or the
-    hull's when that lies outside the hull)."""
+    hull's when that lies outside the hull). A mesh without volume (a sheet)
+    lies flat, its thinnest direction up."""
     import trimesh
 
     key = mesh.identifier_hash
     if key not in _STABLE_POSES:
         hull = mesh.convex_hull
+        inside = lambda c: bool(  # noqa: E731
+            np.all(np.isfinite(c)) and np.all(np.einsum("ij,ij->i", c - hull.triangles_center, hull.face_normals) < 0)
+        )
         centre = np.asarray(mesh.center_mass, dtype=np.float64)
-        if not np.all(np.einsum("ij,ij->i", centre - hull.triangles_center, hull.face_normals) < 0):
+        if not inside(centre):
             centre = np.asarray(hull.center_mass, dtype=np.float64)
-        rests, chances = trimesh.poses.compute_stable_poses(hull, center_mass=centre)
+        if inside(centre):  # (trimesh samples centres until one is inside the hull)
+            rests, chances = trimesh.poses.compute_stable_poses(hull, center_mass=centre)
+            rests = np.asarray(rests)[:, :3, :3]
+        else:
+            vertices = np.asarray(mesh.vertices, dtype=np.float64)
+            axes = np.linalg.svd(vertices - vertices.mean(0))[2]  # rows: principal directions, thinnest last
+            axes[0] *= np.sign(np.linalg.det(axes))
+            rests, chances = axes[None], np.ones(1)
         if len(_STABLE_POSES) >= 256:
             _STABLE_POSES.clear()
-        _STABLE_POSES[key] = (np.asarray(rests)[:, :3, :3], np.asarray(chances) / np.sum(chances))
+        _STABLE_POSES[key] = (rests, np.asarray(chances) / np.sum(chances))
     return _STABLE_POSES[key]
 
 
