@@ -53,6 +53,13 @@ class EstimateSettings:
     edge-on (sparse in space, dense in the image): dropped outliers and small
     fragments whose depth is a smooth ramp meeting the object's edge; a whole
     component dropped as spill stays out (``rust/src/segment.rs``)."""
+    support_plane: bool = True
+    """Given the depth frame: drop the cloud's points on the surface the
+    object stands on or in front of (a table, a wall), found around the
+    mask (:func:`edgepose.stages.on_support_plane`, 0.5–0.9 ms). Spill onto a
+    table that meets the object crosses no depth jump, so segmentation
+    keeps it, and the pose then explains fewer of its points: a second
+    search and a lower confidence (README, "On a table")."""
     keypoints: int = 32
     """Observed keypoints (the map's first farthest-point samples) that verify candidates."""
 
