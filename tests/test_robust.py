@@ -216,7 +216,7 @@ def test_a_table_the_object_stands_on_costs_no_second_search_given_the_frame(dri
     for seed in range(6):
         view = render_scene(mesh, "on_table", seed=seed)
         for plane in (True, False):
-            settings = edgepose.EstimateSettings().with_(support_plane=plane)
+            settings = edgepose.EstimateSettings(support_plane=plane)
             pose = edgepose.estimate(
                 view.cloud, codebook, depth=view.depth, K=view.K, depth_scale=1.0, settings=settings
             )

@@ -381,9 +381,11 @@ def _stable_poses(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     key = mesh.identifier_hash
     if key not in _STABLE_POSES:
         hull = mesh.convex_hull
-        inside = lambda c: bool(  # noqa: E731
-            np.all(np.isfinite(c)) and np.all(np.einsum("ij,ij->i", c - hull.triangles_center, hull.face_normals) < 0)
-        )
+
+        def inside(c: np.ndarray) -> bool:  # strictly inside every face of the hull
+            behind = np.einsum("ij,ij->i", c - hull.triangles_center, hull.face_normals) < 0
+            return bool(np.all(np.isfinite(c)) and np.all(behind))
+
         centre = np.asarray(mesh.center_mass, dtype=np.float64)
         if not inside(centre):
             centre = np.asarray(hull.center_mass, dtype=np.float64)
