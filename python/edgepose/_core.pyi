@@ -37,6 +37,13 @@ def back_project(
     k: npt.NDArray[np.float64],
     depth_scale: float,
 ) -> npt.NDArray[np.float64]: ...
+def on_support_plane(
+    points: npt.NDArray[np.float32],
+    depth: npt.NDArray[np.uint16] | npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    k: npt.NDArray[np.float64],
+    depth_scale: float,
+    diameter: float,
+) -> npt.NDArray[np.bool_]: ...
 def clean_cloud(
     cloud: npt.NDArray[np.float32] | npt.NDArray[np.float64],
     diameter: float,

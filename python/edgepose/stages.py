@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepose import _core
-from edgepose.cloud import MIN_POINTS, clean_cloud, dilate
+from edgepose.cloud import MIN_POINTS, clean_cloud
 from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
@@ -90,91 +90,19 @@ class SceneDepth:
     (an object's edge jitters by a pixel or two)."""
 
 
-#: :func:`on_support_plane` reads the frame's depth at one pixel per cell of
-#: this many pixels, in the cells 2–3 cells off those the cloud covers (8–12
-#: px: past a detector's spill, on what lies around the object).
-RING_CELL_PX = 4
-#: Planes tried (3 ring pixels each) ...
-PLANE_TRIALS = 48
-#: ... the best holding at least this share of the ring's pixels ...
-PLANE_MIN_SHARE = 0.5
-#: ... within this distance of it, metres, or 0.01 × the diameter if larger.
-PLANE_FIT_TOLERANCE = 0.003
-#: A cloud point lies on the plane within 3 robust σ of the ring's own
-#: distances to it, or this, metres, if larger ...
-PLANE_MIN_TOLERANCE = 0.002
-#: ... and the plane is a support when at least this share of the other
-#: points lies on the camera's side of it (the object stands on it or in
-#: front of it, not behind: an occluder's face, or the object's own face
-#: that a cut mask left outside, has the object behind it) ...
-PLANE_IN_FRONT = 0.9
-#: ... and at most this share of the cloud lies on it.
-PLANE_MAX_SHARE = 0.5
-#: The trials' ring pixels, as fractions of the ring (the same every call).
-_PLANE_DRAWS = np.random.default_rng(0).random((3, PLANE_TRIALS))
-
-
 def on_support_plane(
     points: np.ndarray, depth: np.ndarray, K: np.ndarray, depth_scale: float, diameter: float
 ) -> np.ndarray:
-    """(n,) bool: the ``points`` (camera frame, metres) that lie on the
-    surface the object stands on or in front of (a table, a wall): a plane
-    that most pixels around the points' silhouette in the ``depth`` image
-    (``depth / depth_scale`` metres, intrinsics ``K``) show, with the rest
-    of the points on the camera's side of it. A detector's mask takes such
-    points where it spills; where a table meets the object there is no
-    depth jump to drop them by. All False when the surroundings show no
-    such plane."""
-    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-    none = np.zeros(len(points), dtype=bool)
-    z = np.maximum(points[:, 2].astype(np.float64), 1e-6)
-    u, v = points[:, 0] * fx / z + cx, points[:, 1] * fy / z + cy
-    h, w = depth.shape
-    pad = 4 * RING_CELL_PX
-    c0, r0 = max(int(u.min()) - pad, 0), max(int(v.min()) - pad, 0)
-    rows, cols = (
-        -(-(min(int(v.max()) + pad + 1, h) - r0) // RING_CELL_PX),
-        -(-(min(int(u.max()) + pad + 1, w) - c0) // RING_CELL_PX),
-    )
-    if rows <= 0 or cols <= 0:
-        return none
-    seen = np.zeros((rows, cols), dtype=bool)
-    seen[
-        ((v - r0) // RING_CELL_PX).astype(int).clip(0, rows - 1),
-        ((u - c0) // RING_CELL_PX).astype(int).clip(0, cols - 1),
-    ] = True
-    rr, cc = np.nonzero(dilate(seen, 3) & ~dilate(seen, 1))
-    pr = (r0 + rr * RING_CELL_PX + RING_CELL_PX // 2).clip(0, h - 1)
-    pc = (c0 + cc * RING_CELL_PX + RING_CELL_PX // 2).clip(0, w - 1)
-    d = depth[pr, pc].astype(np.float64) / depth_scale
-    measured = np.isfinite(d) & (d > 0)
-    if measured.sum() < 24:
-        return none
-    d, pr, pc = d[measured], pr[measured], pc[measured]
-    ring = np.stack([(pc - cx) * d / fx, (pr - cy) * d / fy, d], axis=1)
-    a, b, c = (ring[i] for i in (_PLANE_DRAWS * len(ring)).astype(int))
-    normals = np.cross(b - a, c - a)
-    lengths = np.linalg.norm(normals, axis=1)
-    usable = lengths > 1e-12
-    if not usable.any():
-        return none
-    normals, a = normals[usable] / lengths[usable, None], a[usable]
-    fits = np.abs(ring @ normals.T - np.einsum("ij,ij->i", a, normals)) < max(PLANE_FIT_TOLERANCE, 0.01 * diameter)
-    best = int(np.argmax(fits.sum(axis=0)))
-    if fits[:, best].sum() < PLANE_MIN_SHARE * len(ring):
-        return none
-    on_plane = ring[fits[:, best]]
-    centre = on_plane.mean(axis=0)
-    normal = np.linalg.eigh(np.cov(on_plane.T))[1][:, 0]  # the direction of least spread
-    normal = -normal if normal @ centre > 0 else normal  # towards the camera
-    residual = (on_plane - centre) @ normal
-    tolerance = max(3 * 1.4826 * float(np.median(np.abs(residual - np.median(residual)))), PLANE_MIN_TOLERANCE)
-    height = (points.astype(np.float64) - centre) @ normal
-    on = np.abs(height) < tolerance
-    others = height[~on]
-    if on.sum() > PLANE_MAX_SHARE * len(points) or not len(others) or (others > tolerance).mean() < PLANE_IN_FRONT:
-        return none
-    return on
+    """(n,) bool: the ``points`` ((n, 3) float32, camera frame, metres) that
+    lie on the surface the object stands on or in front of (a table, a
+    wall): a plane that most pixels 8–12 px around the points' silhouette in
+    the checked ``depth`` image (``depth / depth_scale`` metres, intrinsics
+    ``K``) show, with the rest of the points on the camera's side of it. A
+    detector's mask takes such points where it spills; where a table meets
+    the object there is no depth jump to drop them by. All False when the
+    surroundings show no such plane. Runs in the Rust core
+    (``rust/src/support.rs``, its thresholds there) without the GIL."""
+    return _core.on_support_plane(points, depth, K, float(depth_scale), float(diameter))
 
 
 def scene_around(

@@ -1,6 +1,6 @@
 //! Query hot path: cosine top-16 over 2,100 codes, verification of 16
-//! candidates by 32 keypoints, ICP, segmentation, scoring, the flip margin
-//! and point-pair votes. `cargo bench --bench search`.
+//! candidates by 32 keypoints, ICP, segmentation, the support plane, scoring,
+//! the flip margin and point-pair votes. `cargo bench --bench search`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{Rotation3, Unit, Vector3};
@@ -10,8 +10,8 @@ use edgepose_core::pairs::{PairSettings, PairTable};
 use edgepose_core::rng::SplitMix64;
 use edgepose_core::scoring::align_translations;
 use edgepose_core::{
-    score_poses, segment, top_k, verify, DepthGrid, ModelIndex, Point3, Pose, ScoreSettings,
-    SegmentSettings,
+    on_support_plane, score_poses, segment, top_k, verify, DepthGrid, ModelIndex, Pinhole, Point3,
+    Pose, ScoreSettings, SegmentSettings, SupportSettings,
 };
 
 fn unit_codes(views: usize, dim: usize, rng: &mut SplitMix64) -> Vec<f32> {
@@ -151,6 +151,27 @@ fn bench_search(c: &mut Criterion) {
     group.bench_function(
         format!("segment_{}_points_no_steep_faces", scene.len()),
         |b| b.iter(|| segment(&scene, 0.12, &without_steep_faces)),
+    );
+    // The wall behind it as a 640 × 480 frame with the object drawn in: the
+    // support plane found around the cloud, and the cloud's points on it.
+    let camera = Pinhole {
+        fx: 572.4,
+        fy: 573.6,
+        cx: 325.3,
+        cy: 242.0,
+    };
+    let mut frame = vec![0.64f32; 640 * 480];
+    for p in &seen {
+        let u = (p[0] as f64 * camera.fx / p[2] as f64 + camera.cx).round() as usize;
+        let v = (p[1] as f64 * camera.fy / p[2] as f64 + camera.cy).round() as usize;
+        if u < 640 && v < 480 {
+            frame[v * 640 + u] = frame[v * 640 + u].min(p[2]);
+        }
+    }
+    let support = SupportSettings::default();
+    group.bench_function(
+        format!("support_plane_{}_points_640x480", scene.len()),
+        |b| b.iter(|| on_support_plane(&scene, &frame, 640, &camera, 1.0, 0.12, &support)),
     );
     let spacing = segment(&scene, 0.12, &SegmentSettings::default()).spacing;
     let settings = ScoreSettings {

@@ -13,6 +13,7 @@ use super::arrays::{matrix_array, points_array, rotations_array, triples};
 use super::{guarded, InvalidCloudError, InvalidModelError};
 use crate::query::{self, CleanSettings, Pinhole, QuerySettings};
 use crate::segment::{segment, SegmentSettings};
+use crate::support::{self, SupportSettings};
 use crate::{grouping, maps, sampling, search, views, visibility};
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -25,6 +26,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
     m.add_function(wrap_pyfunction!(segment_object, m)?)?;
     m.add_function(wrap_pyfunction!(back_project, m)?)?;
+    m.add_function(wrap_pyfunction!(on_support_plane, m)?)?;
     m.add_function(wrap_pyfunction!(clean_cloud, m)?)?;
     m.add_function(wrap_pyfunction!(prepare_query, m)?)?;
     m.add_function(wrap_pyfunction!(ray_alignment, m)?)?;
@@ -382,9 +384,75 @@ fn ray_alignment<'py>(
     })
 }
 
+/// A checked depth image as `estimate` takes it: (H, W), C-contiguous,
+/// uint16, float32 or float64 (`depth / depth_scale` metres).
+enum DepthImage<'py> {
+    U16(PyReadonlyArray2<'py, u16>),
+    F32(PyReadonlyArray2<'py, f32>),
+    F64(PyReadonlyArray2<'py, f64>),
+}
+
+impl<'py> DepthImage<'py> {
+    fn from_any(depth: &Bound<'py, PyAny>) -> PyResult<Self> {
+        if let Ok(image) = depth.extract() {
+            Ok(Self::U16(image))
+        } else if let Ok(image) = depth.extract() {
+            Ok(Self::F32(image))
+        } else {
+            depth.extract().map(Self::F64).map_err(|_| {
+                PyValueError::new_err("depth must be a uint16, float32 or float64 image")
+            })
+        }
+    }
+
+    fn shape(&self) -> &[usize] {
+        match self {
+            Self::U16(image) => image.shape(),
+            Self::F32(image) => image.shape(),
+            Self::F64(image) => image.shape(),
+        }
+    }
+}
+
+/// `$body` with `$pixels` the row-major pixels of a [`DepthImage`] (any of
+/// its types), without the GIL.
+macro_rules! with_pixels {
+    ($py:expr, $image:expr, |$pixels:ident| $body:expr) => {{
+        fn slice<'a, T: numpy::Element>(image: &'a PyReadonlyArray2<'_, T>) -> PyResult<&'a [T]> {
+            image
+                .as_slice()
+                .map_err(|_| PyValueError::new_err("depth must be C-contiguous"))
+        }
+        match &$image {
+            DepthImage::U16(image) => {
+                let $pixels = slice(image)?;
+                $py.detach(|| $body)
+            }
+            DepthImage::F32(image) => {
+                let $pixels = slice(image)?;
+                $py.detach(|| $body)
+            }
+            DepthImage::F64(image) => {
+                let $pixels = slice(image)?;
+                $py.detach(|| $body)
+            }
+        }
+    }};
+}
+
+/// Pinhole intrinsics of a checked 3 × 3 matrix `K`.
+fn pinhole(k: &PyReadonlyArray2<'_, f64>) -> Pinhole {
+    let k = k.as_array();
+    Pinhole {
+        fx: k[[0, 0]],
+        fy: k[[1, 1]],
+        cx: k[[0, 2]],
+        cy: k[[1, 2]],
+    }
+}
+
 /// [`query::back_project`]: the (N, 3) float64 camera-frame points (metres)
-/// of the measured pixels of `mask` in a C-contiguous (H, W) `depth` image
-/// (uint16, float32 or float64; `depth / depth_scale` metres), `K` the
+/// of the measured pixels of `mask` in a [`DepthImage`] `depth`, `K` the
 /// checked 3 × 3 pinhole matrix.
 #[pyfunction]
 fn back_project<'py>(
@@ -395,49 +463,62 @@ fn back_project<'py>(
     depth_scale: f64,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     guarded(|| {
-        let k = k.as_array();
-        let camera = Pinhole {
-            fx: k[[0, 0]],
-            fy: k[[1, 1]],
-            cx: k[[0, 2]],
-            cy: k[[1, 2]],
-        };
-        let shape = mask.shape().to_vec();
+        let camera = pinhole(&k);
+        let image = DepthImage::from_any(depth)?;
+        if image.shape() != mask.shape() {
+            return Err(InvalidCloudError::new_err(format!(
+                "mask shape {:?} differs from depth shape {:?}",
+                mask.shape(),
+                image.shape()
+            )));
+        }
         let flags = mask
             .as_slice()
             .map_err(|_| PyValueError::new_err("mask must be C-contiguous"))?;
-        fn pixels<'a, T: numpy::Element>(
-            image: &'a PyReadonlyArray2<'_, T>,
-            shape: &[usize],
-        ) -> PyResult<&'a [T]> {
-            if image.shape() != shape {
-                return Err(InvalidCloudError::new_err(format!(
-                    "mask shape {shape:?} differs from depth shape {:?}",
-                    image.shape()
-                )));
-            }
-            image
-                .as_slice()
-                .map_err(|_| PyValueError::new_err("depth must be C-contiguous"))
-        }
-        let width = shape[1];
-        let points = if let Ok(image) = depth.extract::<PyReadonlyArray2<'py, u16>>() {
-            let d = pixels(&image, &shape)?;
-            py.detach(|| query::back_project(d, flags, width, &camera, depth_scale))
-        } else if let Ok(image) = depth.extract::<PyReadonlyArray2<'py, f32>>() {
-            let d = pixels(&image, &shape)?;
-            py.detach(|| query::back_project(d, flags, width, &camera, depth_scale))
-        } else {
-            let image = depth.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
-                PyValueError::new_err("depth must be a uint16, float32 or float64 image")
-            })?;
-            let d = pixels(&image, &shape)?;
-            py.detach(|| query::back_project(d, flags, width, &camera, depth_scale))
-        };
+        let width = image.shape()[1];
+        let points = with_pixels!(py, image, |d| query::back_project(
+            d,
+            flags,
+            width,
+            &camera,
+            depth_scale
+        ));
         Ok(
             Array::from_shape_vec((points.len(), 3), points.as_flattened().to_vec())
                 .expect("n × 3")
                 .into_pyarray(py),
         )
+    })
+}
+
+/// [`support::on_support_plane`]: (n,) bool, the `points` ((n, 3) float32,
+/// camera frame, metres) on the surface the object stands on or in front
+/// of, found around them in a [`DepthImage`] `depth` (`K` the checked 3 × 3
+/// pinhole matrix) of an object `diameter` metres across.
+#[pyfunction]
+fn on_support_plane<'py>(
+    py: Python<'py>,
+    points: PyReadonlyArray2<'py, f32>,
+    depth: &Bound<'py, PyAny>,
+    k: PyReadonlyArray2<'py, f64>,
+    depth_scale: f64,
+    diameter: f64,
+) -> PyResult<Bound<'py, PyArray1<bool>>> {
+    guarded(|| {
+        let p = triples(&points, "points").map_err(InvalidCloudError::new_err)?;
+        let camera = pinhole(&k);
+        let image = DepthImage::from_any(depth)?;
+        let width = image.shape()[1];
+        let settings = SupportSettings::default();
+        let on = with_pixels!(py, image, |d| support::on_support_plane(
+            p,
+            d,
+            width,
+            &camera,
+            depth_scale,
+            diameter,
+            &settings
+        ));
+        Ok(PyArray1::from_vec(py, on))
     })
 }
