@@ -54,7 +54,8 @@ class EstimateSettings:
     fragments whose depth is a smooth ramp meeting the object's edge; a whole
     component dropped as spill stays out (``rust/src/segment.rs``)."""
     support_plane: bool = True
-    """Given the depth frame: drop the cloud's points on the surface the
+    """Given the depth frame (``estimate``, ``estimate_many``, a
+    ``Tracker``'s frames): drop the cloud's points on the surface the
     object stands on or in front of (a table, a wall), found around the
     mask (:func:`edgepose.stages.on_support_plane`, ~0.06 ms). Spill onto a
     table that meets the object crosses no depth jump, so segmentation

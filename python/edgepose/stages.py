@@ -105,6 +105,19 @@ def on_support_plane(
     return _core.on_support_plane(points, depth, K, float(depth_scale), float(diameter))
 
 
+def off_support_plane(
+    points: np.ndarray, frame: tuple[np.ndarray, np.ndarray, float], diameter: float
+) -> np.ndarray:
+    """``points`` ((n, 3) float32, camera frame, metres) without those
+    :func:`on_support_plane` finds on the surface the object stands on in
+    ``frame`` (the checked depth image, K and depth scale they came from),
+    unless fewer than ``MIN_POINTS`` would remain."""
+    on = on_support_plane(points, *frame, diameter)
+    if on.any() and (~on).sum() >= MIN_POINTS:
+        return np.ascontiguousarray(points[~on])
+    return points
+
+
 def scene_around(
     depth: np.ndarray, K: np.ndarray, depth_scale: float, points: np.ndarray, diameter: float
 ) -> SceneDepth:
@@ -174,9 +187,7 @@ def prepare_query(
     model = codebook.model
     cleaned = clean_cloud(cloud, model.diameter, settings.max_cloud_points)
     if frame is not None and settings.support_plane:
-        on = on_support_plane(cleaned, *frame, model.diameter)
-        if on.any() and (~on).sum() >= MIN_POINTS:
-            cleaned = np.ascontiguousarray(cleaned[~on])
+        cleaned = off_support_plane(cleaned, frame, model.diameter)
     points, spacing, centroid, r_corr, query_map, keypoints = _core.prepare_query(
         cleaned,
         model.diameter,

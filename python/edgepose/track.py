@@ -14,7 +14,10 @@ Frames are camera-frame clouds in metres, segmented to the object, as for
 ``estimate``; poses are ``T_cam_obj``. Given each frame's depth image too
 (``update(cloud, depth=, K=)``, or ``update_depth``), every pose is also
 checked against the scene around the mask, as ``estimate`` checks it: a
-tracked pose that would hide background the camera saw fails the check.
+tracked pose that would hide background the camera saw fails the check;
+and the cloud's points on the surface the object stands on (a table the
+mask spilled onto) are dropped first, as ``estimate`` drops them
+(``EstimateSettings.support_plane``).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
-from edgepose.stages import Query, near_the_cloud, scene_around, score_poses, subsample
+from edgepose.stages import Query, near_the_cloud, off_support_plane, scene_around, score_poses, subsample
 from edgepose.views import rotation_about, rotation_angle
 
 
@@ -162,6 +165,8 @@ class Tracker:
         model = codebook.model
         d = model.diameter
         seen = clean_cloud(cloud, d, track.grid_points)
+        if frame is not None and self.settings.support_plane:
+            seen = off_support_plane(seen, frame, d)
         points = subsample(seen, track.points, self.settings.subsample_seed)
         R, t = last.R, last.t + last.R @ model.centre  # model frame → camera
         if track.velocity > 0 and self._previous is not None:

@@ -41,7 +41,7 @@ impl Default for SupportSettings {
     fn default() -> Self {
         Self {
             cell_px: 4,
-            trials: 48,
+            trials: 256,
             min_share: 0.5,
             fit_tolerance: 0.003,
             min_tolerance: 0.002,
@@ -51,6 +51,8 @@ impl Default for SupportSettings {
     }
 }
 
+/// Least-squares refits of the best drawn plane to its ring points.
+const REFITS: usize = 2;
 /// Fewest measured ring pixels a plane is looked for in.
 const MIN_RING_PIXELS: usize = 24;
 /// Seed of the planes' fixed draws (the same every call).
@@ -199,7 +201,8 @@ fn dilate(flags: &[bool], rows: usize, cols: usize, radius: i64) -> Vec<bool> {
 }
 
 /// The plane through 3 ring points that the most ring points lie within
-/// `tolerance` of, refitted to those by their least-spread direction: a
+/// `tolerance` of, refitted [`REFITS`] times to the ring points within
+/// `tolerance` of it by their least-spread direction: a
 /// point on it, its unit normal towards the camera, and those points'
 /// robust spread about it (1.4826 × the median absolute deviation of their
 /// distances, metres); None when the best holds fewer than
@@ -234,22 +237,32 @@ fn fit_plane(
     if (fits as f64) < settings.min_share * n as f64 {
         return None;
     }
-    let on_plane: Vec<&Vector3<f64>> = ring
-        .iter()
-        .filter(|p| (p.dot(&normal) - offset).abs() < tolerance)
-        .collect();
-    let centre = on_plane.iter().copied().sum::<Vector3<f64>>() / on_plane.len() as f64;
-    let scatter = on_plane
-        .iter()
-        .map(|p| (*p - centre) * (*p - centre).transpose())
-        .sum::<Matrix3<f64>>();
-    let eigen = SymmetricEigen::new(scatter);
-    let mut normal = eigen
-        .eigenvectors
-        .column(eigen.eigenvalues.imin())
-        .into_owned();
-    if normal.dot(&centre) > 0.0 {
-        normal = -normal; // towards the camera
+    // Refitted to the points within `tolerance`, then to those within
+    // `tolerance` of the refit: near-equal draws end on the same plane.
+    let (mut centre, mut normal) = (normal * offset, normal);
+    let mut on_plane: Vec<&Vector3<f64>> = Vec::new();
+    for _ in 0..REFITS {
+        let offset = centre.dot(&normal);
+        on_plane = ring
+            .iter()
+            .filter(|p| (p.dot(&normal) - offset).abs() < tolerance)
+            .collect();
+        if on_plane.len() < 3 {
+            return None;
+        }
+        centre = on_plane.iter().copied().sum::<Vector3<f64>>() / on_plane.len() as f64;
+        let scatter = on_plane
+            .iter()
+            .map(|p| (*p - centre) * (*p - centre).transpose())
+            .sum::<Matrix3<f64>>();
+        let eigen = SymmetricEigen::new(scatter);
+        normal = eigen
+            .eigenvectors
+            .column(eigen.eigenvalues.imin())
+            .into_owned();
+        if normal.dot(&centre) > 0.0 {
+            normal = -normal; // towards the camera
+        }
     }
     let residuals: Vec<f64> = on_plane
         .iter()
