@@ -57,7 +57,7 @@ class EstimateSettings:
     """Given the depth frame (``estimate``, ``estimate_many``, a
     ``Tracker``'s frames): drop the cloud's points on the surface the
     object stands on or in front of (a table, a wall), found around the
-    mask (:func:`edgepose.stages.on_support_plane`, ~0.06 ms). Spill onto a
+    mask (:func:`edgepose.stages.on_support_plane`, ~0.1 ms). Spill onto a
     table that meets the object crosses no depth jump, so segmentation
     keeps it, and the pose then explains fewer of its points: a second
     search and a lower confidence (README, "On a table")."""

@@ -105,9 +105,7 @@ def on_support_plane(
     return _core.on_support_plane(points, depth, K, float(depth_scale), float(diameter))
 
 
-def off_support_plane(
-    points: np.ndarray, frame: tuple[np.ndarray, np.ndarray, float], diameter: float
-) -> np.ndarray:
+def off_support_plane(points: np.ndarray, frame: tuple[np.ndarray, np.ndarray, float], diameter: float) -> np.ndarray:
     """``points`` ((n, 3) float32, camera frame, metres) without those
     :func:`on_support_plane` finds on the surface the object stands on in
     ``frame`` (the checked depth image, K and depth scale they came from),
