@@ -207,6 +207,21 @@ def test_the_surface_the_object_stands_on_is_found_around_the_mask(level):
             assert not on.any()
 
 
+def test_the_surface_search_ignores_points_without_a_pixel_and_refuses_a_bad_K():
+    # A point that projects nowhere (NaN, or far off the image) changes
+    # nothing about the table found; a K that is not 3 × 3 is a clear error.
+    box = trimesh.creation.box(extents=[0.16, 0.12, 0.08])
+    camera = edgepose.eval.Camera(572.4 / 4, 573.6 / 4, 325.3 / 4, 242.0 / 4, 160, 120)
+    view = render_scene(box, "on_table", 0, camera=camera)
+    points = view.cloud.astype(np.float32)
+    on = on_support_plane(points, view.depth, view.K, 1.0, 0.2154)
+    assert on.any()
+    odd = np.concatenate([points, [[np.nan, 0.0, 0.5], [1e30, -1e30, 0.5]]]).astype(np.float32)
+    assert (on_support_plane(odd, view.depth, view.K, 1.0, 0.2154) == np.concatenate([on, [False, False]])).all()
+    with pytest.raises(ValueError, match="K must be 3 × 3"):
+        on_support_plane(points, view.depth, view.K[:2], 1.0, 0.2154)
+
+
 def test_a_table_the_object_stands_on_costs_no_second_search_given_the_frame(drill):
     # The drill on a table, the mask spilled onto it: without the support
     # plane most views keep table points and fail the first search's

@@ -95,7 +95,7 @@ def on_support_plane(
 ) -> np.ndarray:
     """(n,) bool: the ``points`` ((n, 3) float32, camera frame, metres) that
     lie on the surface the object stands on or in front of (a table, a
-    wall): a plane that most pixels 8–12 px around the points' silhouette in
+    wall): a plane that most pixels 6–12 px around the points' silhouette in
     the checked ``depth`` image (``depth / depth_scale`` metres, intrinsics
     ``K``) show, with the rest of the points on the camera's side of it. A
     detector's mask takes such points where it spills; where a table meets

@@ -16,7 +16,8 @@ use crate::Point3;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SupportSettings {
     /// The frame's depth is read at one pixel per cell of this many pixels,
-    /// in the cells 2–3 cells off those the cloud covers (8–12 px: past a
+    /// in the cells more than 1 and at most 3 cells off those the cloud
+    /// covers (6–12 px: past a
     /// detector's spill, on what lies around the object).
     pub cell_px: usize,
     /// Planes tried, each through 3 of those pixels (fixed draws) ...
@@ -62,7 +63,8 @@ const DRAW_SEED: u64 = 0x5EED_7AB1E;
 /// support plane that the `width`-wide row-major `depth` image (`depth /
 /// depth_scale` metres; not finite or ≤ 0: no measurement) shows around the
 /// points' silhouette. All false when the surroundings show no such plane,
-/// or the rest of the points do not stand on its camera side.
+/// when the rest of the points do not stand on its camera side, or when
+/// more than `settings.max_share` of them lie on it.
 pub fn on_support_plane<T: Copy + Into<f64>>(
     points: &[Point3],
     depth: &[T],
@@ -91,7 +93,7 @@ pub fn on_support_plane<T: Copy + Into<f64>>(
     let on: Vec<bool> = heights.iter().map(|h| h.abs() < tolerance).collect();
     let on_count = on.iter().filter(|&&o| o).count();
     let others = points.len() - on_count;
-    let in_front = heights.iter().filter(|h| **h >= tolerance).count();
+    let in_front = heights.iter().filter(|h| **h > tolerance).count();
     if on_count as f64 > settings.max_share * points.len() as f64
         || others == 0
         || (in_front as f64) < settings.in_front * others as f64
@@ -102,7 +104,8 @@ pub fn on_support_plane<T: Copy + Into<f64>>(
 }
 
 /// Camera-frame points (metres) of the measured pixels at the centres of the
-/// cells 2–3 cells off those the points' projections cover, row-major; None
+/// cells more than 1 and at most 3 cells off those the points' projections
+/// onto the image cover, row-major; None
 /// when fewer than [`MIN_RING_PIXELS`].
 fn ring_points<T: Copy + Into<f64>>(
     points: &[Point3],
@@ -127,6 +130,8 @@ fn ring_points<T: Copy + Into<f64>>(
                 (p[1] * fy) as f64 / z + camera.cy,
             )
         })
+        // Only points the image can show (a cloud cut from it: all).
+        .filter(|(u, v)| (-1.0..=width as f64).contains(u) && (-1.0..=height as f64).contains(v))
         .collect();
     let (u_min, u_max, v_min, v_max) = pixels.iter().fold(
         (
@@ -141,20 +146,19 @@ fn ring_points<T: Copy + Into<f64>>(
         return None;
     }
     let pad = 4 * cell as i64;
-    // (Casts saturate: a point far off the image gives an empty window.)
-    let (c0, r0) = (
-        (u_min as i64).saturating_sub(pad).max(0),
-        (v_min as i64).saturating_sub(pad).max(0),
-    );
-    let c1 = (u_max as i64).saturating_add(pad + 1).min(width as i64);
-    let r1 = (v_max as i64).saturating_add(pad + 1).min(height as i64);
+    let (c0, r0) = ((u_min as i64 - pad).max(0), (v_min as i64 - pad).max(0));
+    let c1 = (u_max as i64 + pad + 1).min(width as i64);
+    let r1 = (v_max as i64 + pad + 1).min(height as i64);
     if r1 <= r0 || c1 <= c0 {
         return None;
     }
     let rows = ((r1 - r0) as usize).div_ceil(cell);
     let cols = ((c1 - c0) as usize).div_ceil(cell);
     let mut seen = vec![false; rows * cols];
-    for &(u, v) in &pixels {
+    for &(u, v) in pixels
+        .iter()
+        .filter(|(u, v)| u.is_finite() && v.is_finite())
+    {
         let r = (((v - r0 as f64) / cell as f64).floor() as i64).clamp(0, rows as i64 - 1) as usize;
         let c = (((u - c0 as f64) / cell as f64).floor() as i64).clamp(0, cols as i64 - 1) as usize;
         seen[r * cols + c] = true;
@@ -206,7 +210,8 @@ fn dilate(flags: &[bool], rows: usize, cols: usize, radius: i64) -> Vec<bool> {
 
 /// The plane through 3 ring points that the most ring points lie within
 /// `tolerance` of, refitted [`REFITS`] times to the ring points within
-/// `tolerance` of it by their least-spread direction: a
+/// `tolerance` of it by their least-spread direction (None if fewer than 3
+/// are): a
 /// point on it, its unit normal towards the camera, and those points'
 /// robust spread about it (1.4826 × the median absolute deviation of their
 /// distances, metres); None when the best holds fewer than
@@ -259,6 +264,9 @@ fn fit_plane(
             .iter()
             .map(|p| (*p - centre) * (*p - centre).transpose())
             .sum::<Matrix3<f64>>();
+        if !scatter.iter().all(|x| x.is_finite()) {
+            return None; // depths beyond any sensor's (overflowing squares)
+        }
         let eigen = SymmetricEigen::new(scatter);
         normal = eigen
             .eigenvectors
@@ -451,7 +459,7 @@ mod tests {
         assert!(
             !on_support_plane(&far, &empty, WIDTH, &CAMERA, 1.0, 0.1, &settings).contains(&true)
         );
-        // Points far off the image or behind the camera: nothing, no overflow.
+        // Points off the image or behind the camera: nothing, no overflow.
         let off = vec![[1e30, -1e30, 0.5], [1.0, 1.0, -1.0], [0.0, 0.0, 0.0]];
         assert!(
             !on_support_plane(&off, &empty, WIDTH, &CAMERA, 1.0, 0.1, &settings).contains(&true)

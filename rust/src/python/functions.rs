@@ -440,15 +440,21 @@ macro_rules! with_pixels {
     }};
 }
 
-/// Pinhole intrinsics of a checked 3 × 3 matrix `K`.
-fn pinhole(k: &PyReadonlyArray2<'_, f64>) -> Pinhole {
+/// Pinhole intrinsics of a 3 × 3 matrix `K`; ValueError for another shape.
+fn pinhole(k: &PyReadonlyArray2<'_, f64>) -> PyResult<Pinhole> {
+    if k.shape() != [3, 3] {
+        return Err(PyValueError::new_err(format!(
+            "K must be 3 × 3, got shape {:?}",
+            k.shape()
+        )));
+    }
     let k = k.as_array();
-    Pinhole {
+    Ok(Pinhole {
         fx: k[[0, 0]],
         fy: k[[1, 1]],
         cx: k[[0, 2]],
         cy: k[[1, 2]],
-    }
+    })
 }
 
 /// [`query::back_project`]: the (N, 3) float64 camera-frame points (metres)
@@ -463,7 +469,7 @@ fn back_project<'py>(
     depth_scale: f64,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     guarded(|| {
-        let camera = pinhole(&k);
+        let camera = pinhole(&k)?;
         let image = DepthImage::from_any(depth)?;
         if image.shape() != mask.shape() {
             return Err(InvalidCloudError::new_err(format!(
@@ -506,7 +512,7 @@ fn on_support_plane<'py>(
 ) -> PyResult<Bound<'py, PyArray1<bool>>> {
     guarded(|| {
         let p = triples(&points, "points").map_err(InvalidCloudError::new_err)?;
-        let camera = pinhole(&k);
+        let camera = pinhole(&k)?;
         let image = DepthImage::from_any(depth)?;
         let width = image.shape()[1];
         let settings = SupportSettings::default();
