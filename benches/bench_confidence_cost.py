@@ -36,12 +36,14 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import edgepose
 import numpy as np
+import trimesh
 from edgepose import stages
-from edgepose.encoder import default_encoder
+from edgepose.encoder import Encoder, default_encoder
 from edgepose.eval.benchmark import load_object
 from edgepose.model import load_model, read_mesh
 from edgepose.settings import DEFAULT_SETTINGS
@@ -88,6 +90,17 @@ class Clock:
         setattr(owner, name, timed)
 
 
+def tuning_parts(encoder: Encoder) -> Iterator[tuple[int, str, trimesh.Trimesh, edgepose.Codebook]]:
+    """(index, file name, mesh in metres, codebook) of each of ``PARTS``,
+    scaled to a diameter drawn in 8–25 cm from ``SEED_BASE`` + index."""
+    for k, part in enumerate(PARTS):
+        mesh = read_mesh(CAD / part, scale=1.0)
+        mesh.apply_scale(1.0 / float(np.linalg.norm(mesh.extents)))
+        target = np.random.default_rng(SEED_BASE + k).uniform(0.08, 0.25)
+        mesh.apply_scale(target / load_model(mesh, scale=1.0).diameter)
+        yield k, part, mesh, edgepose.build_codebook(mesh, encoder=encoder)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=9, help="estimates of each view in each mode")
@@ -103,12 +116,7 @@ def main() -> None:
     modes = {"on": DEFAULT_SETTINGS.with_(**{args.setting: on}), "off": DEFAULT_SETTINGS.with_(**{args.setting: off})}
     encoder = default_encoder()
     views = []
-    for k, part in enumerate(PARTS):
-        mesh = read_mesh(CAD / part, scale=1.0)
-        mesh.apply_scale(1.0 / float(np.linalg.norm(mesh.extents)))
-        target = np.random.default_rng(SEED_BASE + k).uniform(0.08, 0.25)
-        mesh.apply_scale(target / load_model(mesh, scale=1.0).diameter)
-        codebook = edgepose.build_codebook(mesh, encoder=encoder)
+    for k, part, mesh, codebook in tuning_parts(encoder):
         for level in args.levels.split(","):
             seeds = [SEED_BASE + k * 100 + i for i in range(3)]
             bench = load_object(mesh, seeds, name=part, symmetric=codebook.symmetry.symmetric, stress=level)

@@ -245,6 +245,11 @@ def test_a_resting_object_lies_on_a_face_on_the_table_it_touches(box):
         up = [a for a in axes if abs(a[0]) < 1e-9 and a[1] < 0 and a[2] < 0]
         assert len(up) == 1
         assert low - 1e-9 <= np.arctan2(-up[0][2], -up[0][1]) <= high + 1e-9
+        # The view says where its table is: that normal, touching the box's lowest corner.
+        normal, offset = view.support
+        np.testing.assert_allclose(normal, up[0], atol=1e-9)
+        corners = trimesh.bounds.corners(box.bounds) @ view.T_cam_obj[:3, :3].T + view.T_cam_obj[:3, 3]
+        assert (corners @ normal).min() == pytest.approx(offset, abs=1e-9)
         # The table meets the silhouette at the object's own depth (a wall
         # stands 2 cm or more behind it): where it touches.
         assert touching(view) >= 3

@@ -58,6 +58,10 @@ class SceneView:
     """(H, W) bool mixed pixels (depth between the object's and the background's)."""
     stress: str
     camera: Camera
+    support: tuple[np.ndarray, float] | None = None
+    """The support plane n·x = offset (camera frame, metres; unit n towards
+    the camera): the table under a resting object, else the wall behind it;
+    None without a background."""
 
 
 def render_scene(
@@ -220,6 +224,7 @@ def render_scene(
         flying_mask=flying & measured,
         stress=stress.name,
         camera=camera,
+        support=(normal, offset),
     )
 
 
