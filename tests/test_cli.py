@@ -348,6 +348,33 @@ def test_track_follows_depth_frames_and_reports_a_bad_frame(drill, tmp_path):
     fails_cleanly(run("track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames")), "need --K")
 
 
+def test_track_gives_the_tracker_each_depth_frame_whole(tmp_path):
+    # The drill sliding on a table, its masks spilled onto the table where
+    # the two meet: given the frames, the tracker leaves the table out and
+    # tracks every frame (from the clouds alone most frames fail the check).
+    from edgepose.eval.scenes import render_scene
+    from edgepose.model import read_mesh
+    from PIL import Image
+
+    mesh = read_mesh(SHIPPED / "power_drill.ply")
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "masks").mkdir()
+    T = render_scene(mesh, "on_table", seed=0).T_cam_obj
+    for i in range(6):
+        T_i = T.copy()
+        T_i[0, 3] += 0.004 * i  # along the camera's x axis, which lies in the table
+        frame = render_scene(mesh, "on_table", seed=0, T_cam_obj=T_i)
+        Image.fromarray(np.round(frame.depth * 1000).astype(np.uint16)).save(tmp_path / "frames" / f"{i:04d}.png")
+        Image.fromarray(frame.mask.astype(np.uint8) * 255).save(tmp_path / "masks" / f"{i:04d}.png")
+    K = " ".join(str(x) for x in frame.K.ravel())
+    out = run(
+        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", K, "--masks", str(tmp_path / "masks"),
+        "-o", str(tmp_path / "poses.csv"),
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "6 frames: 5 tracked, 1 initialised, 0 re-initialised" in out.stdout
+
+
 def test_eval_at_a_stress_level_reports_confidence_and_draws_a_reliability_diagram(tmp_path):
     out = run(
         "eval", str(SHIPPED / "power_drill.ply"), "--views", "3", "--stress", "visible70",

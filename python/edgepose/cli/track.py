@@ -50,7 +50,8 @@ def track(
     """Track an object through frames; write one pose per frame to a CSV.
 
     The first frame is estimated, later ones are tracked from the last pose (a few ms) and estimated again when the
-    tracked pose fails its check. CSV columns: frame, the 4×4 T_cam_obj row-major (m00 … m33, metres), mode
+    tracked pose fails its check. Depth frames are given whole to the tracker: poses are checked against the scene
+    around the mask, and the table or wall the object stands on is left out of its cloud. CSV columns: frame, the 4×4 T_cam_obj row-major (m00 … m33, metres), mode
     (initialised, tracked, reinitialised, or error with the reason), confidence, ms. Ends with a summary line.
     """
     import numpy as np
@@ -83,8 +84,10 @@ def track(
                 cloud = edgepose.cloud_from_depth(depth, camera, mask, depth_scale=depth_scale)
             else:
                 cloud = io.read_cloud(path)
-            try:
-                pose = tracker.update(cloud)
+            try:  # a depth frame also checks the pose against the scene and drops the table (Tracker.update)
+                pose = tracker.update(
+                    cloud, depth=depth, K=camera if depth is not None else None, depth_scale=depth_scale
+                )
             except edgepose.EdgePoseError as e:  # an empty or bad frame: reported, the track goes on
                 rows.append([i, path.name, *([""] * 16), f"error: {e}", "", ""])
                 modes.append("error")
