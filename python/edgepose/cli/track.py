@@ -51,8 +51,9 @@ def track(
 
     The first frame is estimated, later ones are tracked from the last pose (a few ms) and estimated again when the
     tracked pose fails its check. Depth frames are given whole to the tracker: poses are checked against the scene
-    around the mask, and the table or wall the object stands on is left out of its cloud. CSV columns: frame, the 4×4 T_cam_obj row-major (m00 … m33, metres), mode
-    (initialised, tracked, reinitialised, or error with the reason), confidence, ms. Ends with a summary line.
+    around the mask, and the table or wall the object stands on is left out of its cloud. CSV columns: frame, the
+    4×4 T_cam_obj row-major (m00 … m33, metres), mode (initialised, tracked, reinitialised, or error with the
+    reason), confidence, ms. Ends with a summary line.
     """
     import numpy as np
 
