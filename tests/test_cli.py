@@ -310,31 +310,39 @@ def test_eval_refuses_an_unknown_method(ycb_dir):
 # ----------------------------------------------------------------- track
 
 
+def track_depth_frames(tmp_path: Path, frames: list, K: np.ndarray):
+    """``edgepose track`` on ``frames`` ((depth metres, mask) pairs) written as
+    16-bit millimetre PNGs with mask PNGs of the same names; its result."""
+    from PIL import Image
+
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "masks").mkdir()
+    for i, (depth, mask) in enumerate(frames):
+        Image.fromarray(np.round(depth * 1000).astype(np.uint16)).save(tmp_path / "frames" / f"{i:04d}.png")
+        Image.fromarray(mask.astype(np.uint8) * 255).save(tmp_path / "masks" / f"{i:04d}.png")
+    return run(
+        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", " ".join(str(x) for x in K.ravel()),
+        "--masks", str(tmp_path / "masks"), "-o", str(tmp_path / "poses.csv"),
+    )  # fmt: skip
+
+
 def test_track_follows_depth_frames_and_reports_a_bad_frame(drill, tmp_path):
     import csv
 
     import trimesh
-    from PIL import Image
 
     codebook, view = drill
     mesh = trimesh.load(SHIPPED / "power_drill.ply", process=False)
-    (tmp_path / "frames").mkdir()
-    (tmp_path / "masks").mkdir()
-    truths = []
+    frames, truths = [], []
     T = view.T_cam_obj
     for i in range(6):
         T = T.copy()
         T[:3, :3] = trimesh.transformations.rotation_matrix(np.radians(3.0), [0, 1, 0])[:3, :3] @ T[:3, :3]
         frame = render_view(mesh, T_cam_obj=T, seed=i)
         mask = frame.mask if i != 3 else np.zeros_like(frame.mask)  # frame 3: the object is lost
-        Image.fromarray(np.round(frame.depth * 1000).astype(np.uint16)).save(tmp_path / "frames" / f"{i:04d}.png")
-        Image.fromarray(mask.astype(np.uint8) * 255).save(tmp_path / "masks" / f"{i:04d}.png")
+        frames.append((frame.depth, mask))
         truths.append(T)
-    K = " ".join(str(x) for x in view.camera.K.ravel())
-    out = run(
-        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", K, "--masks", str(tmp_path / "masks"),
-        "-o", str(tmp_path / "poses.csv"),
-    )  # fmt: skip
+    out = track_depth_frames(tmp_path, frames, view.camera.K)
     assert out.returncode == 0, out.stderr
     assert "6 frames: 4 tracked, 1 initialised, 0 re-initialised, 1 without a pose" in out.stdout
     rows = list(csv.DictReader((tmp_path / "poses.csv").open()))
@@ -354,23 +362,15 @@ def test_track_gives_the_tracker_each_depth_frame_whole(tmp_path):
     # tracks every frame (from the clouds alone most frames fail the check).
     from edgepose.eval.scenes import render_scene
     from edgepose.model import read_mesh
-    from PIL import Image
 
     mesh = read_mesh(SHIPPED / "power_drill.ply")
-    (tmp_path / "frames").mkdir()
-    (tmp_path / "masks").mkdir()
     T = render_scene(mesh, "on_table", seed=0).T_cam_obj
+    views = []
     for i in range(6):
         T_i = T.copy()
         T_i[0, 3] += 0.004 * i  # along the camera's x axis, which lies in the table
-        frame = render_scene(mesh, "on_table", seed=0, T_cam_obj=T_i)
-        Image.fromarray(np.round(frame.depth * 1000).astype(np.uint16)).save(tmp_path / "frames" / f"{i:04d}.png")
-        Image.fromarray(frame.mask.astype(np.uint8) * 255).save(tmp_path / "masks" / f"{i:04d}.png")
-    K = " ".join(str(x) for x in frame.K.ravel())
-    out = run(
-        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", K, "--masks", str(tmp_path / "masks"),
-        "-o", str(tmp_path / "poses.csv"),
-    )  # fmt: skip
+        views.append(render_scene(mesh, "on_table", seed=0, T_cam_obj=T_i))
+    out = track_depth_frames(tmp_path, [(v.depth, v.mask) for v in views], views[0].K)
     assert out.returncode == 0, out.stderr
     assert "6 frames: 5 tracked, 1 initialised, 0 re-initialised" in out.stdout
 

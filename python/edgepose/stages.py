@@ -105,11 +105,19 @@ def on_support_plane(
     return _core.on_support_plane(points, depth, K, float(depth_scale), float(diameter))
 
 
-def off_support_plane(points: np.ndarray, frame: tuple[np.ndarray, np.ndarray, float], diameter: float) -> np.ndarray:
+def off_support_plane(
+    points: np.ndarray,
+    frame: tuple[np.ndarray, np.ndarray, float] | None,
+    diameter: float,
+    settings: EstimateSettings,
+) -> np.ndarray:
     """``points`` ((n, 3) float32, camera frame, metres) without those
     :func:`on_support_plane` finds on the surface the object stands on in
     ``frame`` (the checked depth image, K and depth scale they came from),
-    unless fewer than ``MIN_POINTS`` would remain."""
+    unless fewer than ``MIN_POINTS`` would remain; ``points`` as they are
+    without a frame or with ``settings.support_plane`` off."""
+    if frame is None or not settings.support_plane:
+        return points
     on = on_support_plane(points, *frame, diameter)
     if on.any() and (~on).sum() >= MIN_POINTS:
         return np.ascontiguousarray(points[~on])
@@ -184,10 +192,8 @@ def prepare_query(
     (:func:`on_support_plane`, ``settings.support_plane``)."""
     model = codebook.model
     cleaned = clean_cloud(cloud, model.diameter, settings.max_cloud_points)
-    if frame is not None and settings.support_plane:
-        cleaned = off_support_plane(cleaned, frame, model.diameter)
     points, spacing, centroid, r_corr, query_map, keypoints = _core.prepare_query(
-        cleaned,
+        off_support_plane(cleaned, frame, model.diameter, settings),
         model.diameter,
         model.scale,
         codebook.map_points,

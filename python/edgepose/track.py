@@ -164,9 +164,7 @@ class Tracker:
         assert last is not None
         model = codebook.model
         d = model.diameter
-        seen = clean_cloud(cloud, d, track.grid_points)
-        if frame is not None and self.settings.support_plane:
-            seen = off_support_plane(seen, frame, d)
+        seen = off_support_plane(clean_cloud(cloud, d, track.grid_points), frame, d, self.settings)
         points = subsample(seen, track.points, self.settings.subsample_seed)
         R, t = last.R, last.t + last.R @ model.centre  # model frame → camera
         if track.velocity > 0 and self._previous is not None:

@@ -224,8 +224,9 @@ pub fn draw(n: usize, count: usize, seed: u64) -> Vec<usize> {
     drawn
 }
 
-/// The median of `values` (the mean of the two middle ones for an even count).
-fn median(mut values: Vec<f64>) -> f64 {
+/// The median of `values` (the mean of the two middle ones for an even count;
+/// `values` not empty).
+pub(crate) fn median(mut values: Vec<f64>) -> f64 {
     let n = values.len();
     let (below, middle, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
     let middle = *middle;

@@ -8,7 +8,7 @@
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
-use crate::query::Pinhole;
+use crate::query::{median, Pinhole};
 use crate::rng::SplitMix64;
 use crate::Point3;
 
@@ -287,20 +287,11 @@ fn fit_plane(
     ))
 }
 
-/// Median of |x − median(x)| (the middle two averaged for an even count).
+/// Median of |x − median(x)| (the middle two averaged for an even count;
+/// `values` not empty).
 fn median_absolute_deviation(values: &[f64]) -> f64 {
     let centre = median(values.to_vec());
     median(values.iter().map(|x| (x - centre).abs()).collect())
-}
-
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    match n {
-        0 => 0.0,
-        _ if n % 2 == 1 => values[n / 2],
-        _ => 0.5 * (values[n / 2 - 1] + values[n / 2]),
-    }
 }
 
 #[cfg(test)]
