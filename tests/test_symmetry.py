@@ -113,6 +113,30 @@ def test_near_turns_are_found_where_a_small_detail_breaks_a_symmetry():
         assert len(detect_symmetry(load_model(exact)).near) == 0
 
 
+def test_near_turns_are_sought_about_axes_that_are_neither_principal_nor_normal():
+    """A cube with an off-centre peg: its 120° turns about the body
+    diagonals move only the peg, so a view of the cube's other faces cannot
+    tell them from the pose. A diagonal is no principal axis (the peg sets
+    those) and no face normal, the axes the symmetry probes try; the near
+    turns' spread axes find it."""
+    from edgepose.symmetry import NEAR_MEAN_DIAMETERS, rotation_axis
+
+    peg = trimesh.creation.box([0.015, 0.015, 0.015])
+    peg.apply_translation([0.02, 0.01, 0.055])
+    model = load_model(trimesh.util.concatenate([trimesh.creation.box([0.1, 0.1, 0.1]), peg]))
+    s = detect_symmetry(model)
+    diagonals = np.array([[1, 1, 1], [1, 1, -1], [1, -1, 1], [-1, 1, 1]]) / np.sqrt(3)
+    about_a_diagonal = [
+        T
+        for T in s.near
+        if abs(angle_deg(T[:3, :3]) - 120) < 5
+        and np.abs(diagonals @ rotation_axis(T[:3, :3])).max() > np.cos(np.radians(5))
+    ]
+    assert not s.symmetric and about_a_diagonal, s.describe()
+    for T in about_a_diagonal:
+        assert add_s(model.mesh_points, T, np.eye(4)) <= 1.5 * NEAR_MEAN_DIAMETERS * model.diameter
+
+
 def test_shared_ycb_meshes_match_the_hand_list(ycb_dir):
     for path in sorted(ycb_dir.glob("*.ply")):
         s = detect_symmetry(load_model(path))

@@ -47,15 +47,23 @@ MAX_TURNS = 60
 #: Turns closer than this (degrees) are the same turn.
 SAME_TURN_DEG = 2.0
 #: A *near turn* (not a symmetry) keeps the model's points this close to the
-#: surface on average, as a fraction of the diameter: the hypotheses' inlier
-#: distance, so a depth view can hardly tell a pose from the pose so turned
-#: (a box whose holes are small, a disc with a notch) ...
-NEAR_MEAN_DIAMETERS = 0.02
+#: surface on average, as a fraction of the diameter, so a partial or noisy
+#: depth view may not tell a pose from the pose so turned (a box whose holes
+#: are small, a disc with a notch, a lump whose seen side looks alike turned) ...
+NEAR_MEAN_DIAMETERS = 0.03
 #: ... is at least this far from the identity and from every other near
 #: turn and symmetry (degrees) ...
 NEAR_MIN_ANGLE_DEG = 30.0
 #: ... and at most this many are kept, the closest fits first.
-NEAR_MAX_TURNS = 4
+NEAR_MAX_TURNS = 6
+#: Near turns are sought about the symmetry probes' axes and, besides, about
+#: this many axes spread over the sphere (a lump's look-alike turn need not be
+#: about a principal axis or a face normal), by these angles (degrees) ...
+NEAR_PROBE_AXES = 64
+NEAR_PROBE_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0)
+#: ... and of the probes that screen close, at most this many, spread
+#: ``NEAR_MIN_ANGLE_DEG`` apart and best first, are polished by ICP.
+NEAR_POLISHED = 4 * NEAR_MAX_TURNS
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,7 +149,8 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     and counts when the turned points then lie on the model
     (``MAX_MEAN_SPACINGS``, ``MAX_Q99_SPACINGS``). An axis whose three odd
     turns all count is continuous; the other turns
-    are closed into their group. Deterministic; tens of milliseconds."""
+    are closed into their group. Near turns (:func:`_near_turns`) are
+    sought too. Deterministic; 0.1–0.3 s."""
     index = index or _core.ModelIndex(model.core)
     points = model.points.astype(np.float64)
     centroid = points.mean(axis=0)
@@ -213,22 +222,35 @@ def _near_turns(
     group: list[np.ndarray],
     continuous_axes: list[np.ndarray],
 ) -> list[np.ndarray]:
-    """Near turns (model frame, 4 × 4) among the probe turns ``R``, ``t``:
-    each polished by ICP (kept unpolished when ICP slides it back towards
-    the identity), then kept when the turned model points lie on average
-    within ``NEAR_MEAN_DIAMETERS`` of the surface and it is no symmetry
-    (fails their test; none of ``group``, no turn about a
+    """Near turns (model frame, 4 × 4) among the probe turns ``R``, ``t``
+    and the turns about ``NEAR_PROBE_AXES`` spread axes through the
+    centroid: the probes that screen close (at most ``NEAR_POLISHED``,
+    spread apart) each polished by ICP (kept unpolished when ICP slides it
+    back towards the identity), then kept when the turned model points lie
+    on average within ``NEAR_MEAN_DIAMETERS`` of the surface and it is no
+    symmetry (fails their test; none of ``group``, no turn about a
     ``continuous_axes``), closest first."""
     limit = NEAR_MEAN_DIAMETERS * model.diameter
-    # An unpolished probe's axis may be a few degrees off: screen at twice the limit.
-    close = index.distances(screen, R, t, True).mean(axis=1) <= 2 * limit
-    if not close.any():
-        return []
-    icp = index.refine(screen, R[close], t[close], ICP_ITERATIONS, 0.1 * model.diameter)
     minimum = np.radians(NEAR_MIN_ANGLE_DEG)
+    spread_R = _turns_about_spread_axes()
+    centroid = model.points.astype(np.float64).mean(axis=0)
+    R = np.ascontiguousarray(np.concatenate([R, spread_R]))
+    t = np.ascontiguousarray(np.concatenate([t, centroid - spread_R @ centroid]))
+    # An unpolished probe's axis may be a few degrees off: screen at twice the limit.
+    screened = index.distances(screen, R, t, True).mean(axis=1)
+    chosen: list[int] = []
+    for i in np.argsort(screened, kind="stable"):
+        if screened[i] > 2 * limit or len(chosen) == NEAR_POLISHED:
+            break
+        if all(rotation_angle(R[i].T @ R[j]) >= minimum for j in chosen):
+            chosen.append(int(i))
+    if not chosen:
+        return []
+    R, t = np.ascontiguousarray(R[chosen]), np.ascontiguousarray(t[chosen])
+    icp = index.refine(screen, R, t, ICP_ITERATIONS, 0.1 * model.diameter)
     polished = np.array([rotation_angle(Ri) >= minimum for Ri in icp.rotations])
-    R_c = np.where(polished[:, None, None], icp.rotations, R[close])
-    t_c = np.where(polished[:, None], icp.translations, t[close])
+    R_c = np.where(polished[:, None, None], icp.rotations, R)
+    t_c = np.where(polished[:, None], icp.translations, t)
     mean = index.distances(np.ascontiguousarray(model.points), R_c, t_c, True).mean(axis=1)
     kept: list[np.ndarray] = []
     known = [np.eye(4), *group]
@@ -262,6 +284,15 @@ def doubtful_turns(model: StandardModel, symmetry: Symmetry) -> tuple[np.ndarray
             turns.append(T)
     stacked = np.stack(turns)
     return np.ascontiguousarray(stacked[:, :3, :3]), np.ascontiguousarray(stacked[:, :3, 3])
+
+
+def _turns_about_spread_axes() -> np.ndarray:
+    """(NEAR_PROBE_AXES × angles, 3, 3) turns by ``NEAR_PROBE_ANGLES_DEG``
+    about ``NEAR_PROBE_AXES`` near-uniform axes."""
+    axes, _ = _core.fibonacci_viewpoints(NEAR_PROBE_AXES)
+    return np.stack(
+        [rotation_about(a / np.linalg.norm(a), np.radians(angle)) for a in axes for angle in NEAR_PROBE_ANGLES_DEG]
+    )
 
 
 def _shifted(turns: list[np.ndarray] | np.ndarray, offset: np.ndarray) -> np.ndarray:
