@@ -109,7 +109,11 @@ def test_near_turns_are_found_where_a_small_detail_breaks_a_symmetry():
     long_box = load_model(trimesh.util.concatenate([trimesh.creation.box([0.06, 0.1, 0.16]), peg]))
     s = detect_symmetry(long_box)
     assert len(s.near) == 3 and len(doubtful_turns(long_box, s)[0]) == 3
-    for exact in (trimesh.creation.box([0.06, 0.1, 0.16]), trimesh.creation.cylinder(0.03, 0.12)):
+    for exact in (
+        trimesh.creation.box([0.06, 0.1, 0.16]),
+        trimesh.creation.cylinder(0.03, 0.12),
+        trimesh.creation.icosphere(subdivisions=3, radius=0.05),  # every turn a symmetry
+    ):
         assert len(detect_symmetry(load_model(exact)).near) == 0
 
 

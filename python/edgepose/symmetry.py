@@ -229,7 +229,10 @@ def _near_turns(
     back towards the identity), then kept when the turned model points lie
     on average within ``NEAR_MEAN_DIAMETERS`` of the surface and it is no
     symmetry (fails their test; none of ``group``, no turn about a
-    ``continuous_axes``), closest first."""
+    ``continuous_axes``), closest first. None for a sphere (two or more
+    continuous axes: every turn is a symmetry)."""
+    if len(continuous_axes) > 1:
+        return []
     limit = NEAR_MEAN_DIAMETERS * model.diameter
     minimum = np.radians(NEAR_MIN_ANGLE_DEG)
     spread_R = _turns_about_spread_axes()
