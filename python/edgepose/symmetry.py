@@ -209,7 +209,7 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     # Model frame → object frame: p_obj = p_model + centre.
     discrete = _shifted(group, model.centre)
     rows = [np.concatenate([a * np.sign(a[np.argmax(np.abs(a))]), p + model.centre]) for a, p in continuous]
-    near = _near_turns(index, model, screen, R, t, group, [a for a, _ in continuous])
+    near = _near_turns(index, model, screen, centroid, R, t, group, [a for a, _ in continuous])
     return Symmetry(discrete, np.array(rows).reshape(-1, 6), _shifted(near, model.centre))
 
 
@@ -217,14 +217,15 @@ def _near_turns(
     index: _core.ModelIndex,
     model: StandardModel,
     screen: np.ndarray,
+    centroid: np.ndarray,
     R: np.ndarray,
     t: np.ndarray,
     group: list[np.ndarray],
     continuous_axes: list[np.ndarray],
 ) -> list[np.ndarray]:
     """Near turns (model frame, 4 × 4) among the probe turns ``R``, ``t``
-    and the turns about ``NEAR_PROBE_AXES`` spread axes through the
-    centroid: the probes that screen close (at most ``NEAR_POLISHED``,
+    and the turns about ``NEAR_PROBE_AXES`` spread axes through the model
+    points' ``centroid``: the probes that screen close (at most ``NEAR_POLISHED``,
     spread apart) each polished by ICP (kept unpolished when ICP slides it
     back towards the identity), then kept when the turned model points lie
     on average within ``NEAR_MEAN_DIAMETERS`` of the surface and it is no
@@ -236,7 +237,6 @@ def _near_turns(
     limit = NEAR_MEAN_DIAMETERS * model.diameter
     minimum = np.radians(NEAR_MIN_ANGLE_DEG)
     spread_R = _turns_about_spread_axes()
-    centroid = model.points.astype(np.float64).mean(axis=0)
     R = np.ascontiguousarray(np.concatenate([R, spread_R]))
     t = np.ascontiguousarray(np.concatenate([t, centroid - spread_R @ centroid]))
     # An unpolished probe's axis may be a few degrees off: screen at twice the limit.
