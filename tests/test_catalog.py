@@ -23,6 +23,7 @@ from edgepose.catalog import (
     find_meshes,
 )
 from edgepose.codebook import _canonical_header, _checksum
+from edgepose.symmetry import SEARCH_FINGERPRINT
 from test_cli import run
 
 SETTINGS = BuildSettings(views=300)
@@ -150,6 +151,29 @@ def test_a_codebook_of_another_encoder_is_rebuilt(catalogue, local_books, tmp_pa
 
     results = build_catalog(find_meshes([catalogue]), out, SETTINGS)
     assert [(r.name, r.status) for r in results] == [("box", "skipped"), ("bracket", "skipped"), ("cylinder", "built")]
+    assert books(out) == books(local_books)
+
+
+@pytest.mark.parametrize("search", ["an older search", None])
+def test_a_codebook_whose_symmetries_an_older_search_found_is_rebuilt(catalogue, local_books, tmp_path, search):
+    from safetensors.numpy import load, save
+
+    out = copy_of(local_books, tmp_path / "books")
+    blob = (out / "bracket.codebook").read_bytes()
+    tensors = load(blob)
+    size = int.from_bytes(blob[:8], "little")
+    metadata = json.loads(blob[8 : 8 + size])["__metadata__"]
+    assert metadata["symmetry_search"] == SEARCH_FINGERPRINT
+    if search is None:  # saved by an edgepose that recorded no search
+        del metadata["symmetry_search"]
+    else:
+        metadata["symmetry_search"] = search
+    metadata["checksum"] = _checksum(tensors, metadata)  # a valid file, still usable
+    (out / "bracket.codebook").write_bytes(_canonical_header(save(tensors, metadata)))
+    assert edgepose.Codebook.load(out / "bracket.codebook").symmetry_search == search
+
+    results = build_catalog(find_meshes([catalogue]), out, SETTINGS)
+    assert [(r.name, r.status) for r in results] == [("box", "skipped"), ("bracket", "built"), ("cylinder", "skipped")]
     assert books(out) == books(local_books)
 
 

@@ -165,3 +165,14 @@ def test_missing_and_oversized_files(tmp_path):
         f.truncate(MAX_FILE_BYTES + 1)
     with pytest.raises(edgepose.CodebookError, match="too large"):
         edgepose.Codebook.load(huge)
+
+
+def test_shipped_codebooks_are_up_to_date_with_this_edgepose(ycb_dir):
+    """Rebuild them (``make codebooks``) after changing the encoder or the symmetry search."""
+    from edgepose.catalog import BuildSettings, is_up_to_date
+    from edgepose.codebook import file_sha256
+
+    books = sorted(SHIPPED.glob("*.codebook"))
+    assert len(books) == 5
+    for book in books:
+        assert is_up_to_date(book, file_sha256(ycb_dir / f"{book.stem}.ply"), BuildSettings()), book.name

@@ -9,8 +9,9 @@ evaluated or failed, with the error), retrying a failing object a bounded
 number of times first.
 
 Resuming: a codebook whose recorded mesh sha256, encoder fingerprint, view
-count and model point count match the current ones is *up to date* and
-skipped, decided from the codebook file alone. Saves are atomic, so a run
+count, model point count and symmetry search
+(:data:`edgepose.symmetry.SEARCH_FINGERPRINT`) match the current ones is
+*up to date* and skipped, decided from the codebook file alone. Saves are atomic, so a run
 killed at any moment leaves whole codebooks only, and rerunning it builds
 just what is missing or stale.
 
@@ -120,10 +121,13 @@ def codebook_path(out_dir: str | os.PathLike, mesh: str | os.PathLike) -> Path:
 def is_up_to_date(codebook: str | os.PathLike, mesh_sha256: str, settings: BuildSettings, encoder=None) -> bool:
     """Whether ``codebook`` is a valid codebook (checksum verified) of the mesh
     whose sha256 is ``mesh_sha256``, made by ``encoder`` (the shipped one by
-    default) with ``settings``' views and model points. A missing, corrupt,
-    stale or other-encoder codebook is not. A changed ``settings.scale`` is not
+    default) with ``settings``' views and model points, its symmetries found
+    by this edgepose's search. A missing, corrupt, stale or other-encoder
+    codebook is not, nor one whose symmetries and near turns an older search
+    found (it still works, without what the new search finds). A changed ``settings.scale`` is not
     detected (the codebook records the resulting size, not the option)."""
     from edgepose.codebook import Codebook, CodebookError
+    from edgepose.symmetry import SEARCH_FINGERPRINT
 
     try:
         book = Codebook.load(codebook, encoder)
@@ -133,6 +137,7 @@ def is_up_to_date(codebook: str | os.PathLike, mesh_sha256: str, settings: Build
         book.source_sha256 == mesh_sha256
         and len(book) == settings.views
         and len(book.model.points) == settings.n_points
+        and book.symmetry_search == SEARCH_FINGERPRINT
     )
 
 

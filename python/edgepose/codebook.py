@@ -40,7 +40,7 @@ from edgepose.errors import EdgePoseError
 from edgepose.maps import DEFAULT_MAP_POINTS, compute_maps
 from edgepose.model import DEFAULT_MODEL_POINTS, MeshSource, StandardModel, load_model
 from edgepose.settings import usable_cores
-from edgepose.symmetry import NO_SYMMETRY, Symmetry, detect_symmetry, doubtful_turns
+from edgepose.symmetry import NO_SYMMETRY, SEARCH_FINGERPRINT, Symmetry, detect_symmetry, doubtful_turns
 from edgepose.views import DEFAULT_VIEWS, Viewpoints, fibonacci_viewpoints
 
 FORMAT = "edgepose-codebook"
@@ -78,6 +78,9 @@ class Codebook:
     symmetry: Symmetry = NO_SYMMETRY
     """The object's rotational symmetries, object frame: poses differing by
     them are equally right (detected when built)."""
+    symmetry_search: str | None = None
+    """Which symmetry search found ``symmetry`` (:data:`edgepose.symmetry.SEARCH_FINGERPRINT`
+    when built; None: given by hand, or saved by an older edgepose)."""
     timings: dict = field(default_factory=dict)
     """Build time per stage, seconds (empty for a loaded codebook)."""
     index: _core.ModelIndex = field(init=False, repr=False)
@@ -131,6 +134,8 @@ class Codebook:
         }
         if self.source_sha256 is not None:
             metadata["source_sha256"] = self.source_sha256
+        if self.symmetry_search is not None:
+            metadata["symmetry_search"] = self.symmetry_search
         metadata["checksum"] = _checksum(tensors, metadata)
         return metadata
 
@@ -241,6 +246,7 @@ class Codebook:
                 map_points=int(metadata["map_points"]),
                 source_sha256=metadata.get("source_sha256"),
                 symmetry=Symmetry.from_json(json.loads(metadata["symmetry"])),
+                symmetry_search=metadata.get("symmetry_search"),
             )
         except KeyError as e:
             raise CodebookError(f"{name}: missing {e} in the codebook") from None
@@ -283,6 +289,7 @@ def build_codebook(
         encoder.map_points,
         source_sha256,
         symmetry,
+        SEARCH_FINGERPRINT,
     )
     # Through the stored dtypes, so a built codebook and its saved copy give identical poses.
     tensors = built._tensors()

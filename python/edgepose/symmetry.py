@@ -13,6 +13,7 @@ point on it (metres).
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,6 +65,35 @@ NEAR_PROBE_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0)
 #: ... and of the probes that screen close, at most this many, spread
 #: ``NEAR_MIN_ANGLE_DEG`` apart and best first, are polished by ICP.
 NEAR_POLISHED = 4 * NEAR_MAX_TURNS
+#: Raised when :func:`detect_symmetry` changes in a way the constants above
+#: do not show (5: near turns about spread axes, a sphere gets none) ...
+SEARCH_REVISION = 5
+#: ... so that this, recorded in every codebook, tells a codebook whose
+#: symmetries and near turns an older search found (``edgepose build``
+#: rebuilds it): the revision and the constants, hashed.
+SEARCH_FINGERPRINT = hashlib.sha256(
+    repr(
+        (
+            SEARCH_REVISION,
+            ORDERS,
+            CONTINUOUS_PROBES_DEG,
+            MAX_MEAN_SPACINGS,
+            MAX_Q99_SPACINGS,
+            NORMAL_AXES,
+            SCREEN_POINTS,
+            ICP_ITERATIONS,
+            SCREEN_MEAN_SPACINGS,
+            MAX_TURNS,
+            SAME_TURN_DEG,
+            NEAR_MEAN_DIAMETERS,
+            NEAR_MIN_ANGLE_DEG,
+            NEAR_MAX_TURNS,
+            NEAR_PROBE_AXES,
+            NEAR_PROBE_ANGLES_DEG,
+            NEAR_POLISHED,
+        )
+    ).encode()
+).hexdigest()[:16]
 
 
 @dataclass(frozen=True, eq=False)

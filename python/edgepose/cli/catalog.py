@@ -47,9 +47,9 @@ def build(
 ) -> None:
     """Build a codebook for each mesh (seconds each): DIR/<mesh name>.codebook.
 
-    Codebooks already up to date (same mesh sha256, encoder, views and points) are skipped, so rerunning an
-    interrupted build resumes it. An object that fails is retried, then reported; the others are still built (exit
-    status 1 if any failed). --ray runs one Ray task per object on a cluster (dist extra).
+    Codebooks already up to date (same mesh sha256, encoder, views, points and symmetry search) are skipped, so
+    rerunning an interrupted build resumes it. An object that fails is retried, then reported; the others are still
+    built (exit status 1 if any failed). --ray runs one Ray task per object on a cluster (dist extra).
     """
     from edgepose.catalog import BuildSettings, build_catalog, find_meshes
     from edgepose.report import build_summary, build_table, progress
