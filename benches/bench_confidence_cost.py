@@ -25,7 +25,10 @@ off); the per-view paired difference of the totals, over all views and at
 each level; and the confidence's
 own cost per estimate in each mode, per view: rival start + confidence
 lap, plus, when on, the polish's time on minus off (what the rival
-running beside it costs the polish). Both two-core modes give the same
+running beside it costs the polish); and the rival search alone, called
+back to back on each view's pose (warm caches), against the same search
+inside an estimate ("off" mode's ``rival get``): the work, and what
+running it cold, after the rest of the estimate, adds. Both two-core modes give the same
 poses and confidences (checked); the near-tie polish may change a pose
 (counted, with the estimates in which it polished a tie, and the time
 spent in :func:`edgepose.stages.tie_broken`). The machine is noisy: compare
@@ -101,6 +104,24 @@ def tuning_parts(encoder: Encoder) -> Iterator[tuple[int, str, trimesh.Trimesh, 
         yield k, part, mesh, edgepose.build_codebook(mesh, encoder=encoder)
 
 
+#: Back-to-back calls of the rival search per view for its warm time.
+WARM_CALLS = 20
+
+
+def warm_search(cloud: np.ndarray, codebook: edgepose.Codebook, pose: edgepose.Pose, settings) -> float:
+    """Median seconds of :func:`edgepose.stages.flip_rival` of ``pose``
+    (found from ``cloud``), called ``WARM_CALLS`` times back to back."""
+    query = stages.prepare_query(cloud, codebook, settings)
+    R, t = pose.R, pose.t + pose.R @ codebook.model.centre  # object frame -> model frame
+    stages.flip_rival(query, codebook, R, t, settings)
+    seconds = []
+    for _ in range(WARM_CALLS):
+        started = time.perf_counter()
+        stages.flip_rival(query, codebook, R, t, settings)
+        seconds.append(time.perf_counter() - started)
+    return float(np.median(seconds))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=9, help="estimates of each view in each mode")
@@ -137,6 +158,7 @@ def main() -> None:
 
     stages.tie_broken = watched
     per_view: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
+    warm: list[float] = []
     changed = tied = 0
     levels: list[str] = []
     for level, codebook, cloud in views:
@@ -169,6 +191,8 @@ def main() -> None:
             for key, seconds in runs[mode].items():
                 per_view[mode].setdefault(key, []).append(float(np.median(seconds)))
         levels.append(level)
+        if args.setting == "flip_rival_beside_polish":
+            warm.append(warm_search(cloud, codebook, poses["off"], modes["off"]))
     print(f"{len(views)} views × {args.repeats} estimates per mode; medians over views, ms; {args.setting} on and off")
     print(f"{'':<18}" + "".join(f"{m:>10}" for m in modes))
     for key in per_view["on"]:
@@ -193,6 +217,11 @@ def main() -> None:
             f"the confidence's own cost per estimate, median over views: on {np.median(own['on'] + beside):.3f} ms"
             f" (rival start + confidence lap {np.median(own['on']):.3f}, polish on minus off {np.median(beside):+.3f}),"
             f" off {np.median(own['off']):.3f} ms"
+        )
+        print(
+            f"the rival search alone, {WARM_CALLS} calls back to back per view (warm):"
+            f" median {1e3 * np.median(warm):.3f} ms;"
+            f" inside the estimate (off, rival get) {1e3 * np.median(per_view['off']['rival get']):.3f} ms"
         )
 
 
