@@ -11,9 +11,9 @@ number of times first.
 Resuming: a codebook whose recorded mesh sha256, encoder fingerprint, view
 count, model point count and symmetry search
 (:data:`edgepose.symmetry.SEARCH_FINGERPRINT`) match the current ones is
-*up to date* and skipped, decided from the codebook file alone. Saves are atomic, so a run
-killed at any moment leaves whole codebooks only, and rerunning it builds
-just what is missing or stale.
+*up to date* and skipped, decided from the codebook file alone. Saves are
+atomic, so a run killed at any moment leaves whole codebooks only, and
+rerunning it builds just what is missing or stale.
 
 Executors: :class:`LocalExecutor` (one object after another, each with every
 core, as ``edgepose build`` always did) and :class:`RayExecutor` (one Ray task
@@ -124,8 +124,9 @@ def is_up_to_date(codebook: str | os.PathLike, mesh_sha256: str, settings: Build
     default) with ``settings``' views and model points, its symmetries found
     by this edgepose's search. A missing, corrupt, stale or other-encoder
     codebook is not, nor one whose symmetries and near turns an older search
-    found (it still works, without what the new search finds). A changed ``settings.scale`` is not
-    detected (the codebook records the resulting size, not the option)."""
+    found (it still works, without what the new search finds). A changed
+    ``settings.scale`` is not detected (the codebook records the resulting
+    size, not the option)."""
     from edgepose.codebook import Codebook, CodebookError
     from edgepose.symmetry import SEARCH_FINGERPRINT
 

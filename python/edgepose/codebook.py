@@ -11,10 +11,11 @@ that would otherwise load silently as different numbers.
 A codebook holds, per viewpoint: the encoder's unit code, the angular
 spectrum (for the in-plane angle), the view rotation and the centroid of the
 visible model points; and once: the standard model, its scale, diameter and
-centre, its rotational symmetries (:mod:`edgepose.symmetry`), the
-fingerprint of the encoder that made the codes and, when built from a mesh
-file, the sha256 of that file (so a catalogue build can tell an
-up-to-date codebook from a stale one by reading the codebook alone).
+centre, its rotational symmetries (:mod:`edgepose.symmetry`) and which
+search found them, the fingerprint of the encoder that made the codes and,
+when built from a mesh file, the sha256 of that file (so a catalogue build
+can tell an up-to-date codebook from a stale one by reading the codebook
+alone).
 
 A saved file is a function of its contents only (header keys in a fixed
 order, no timestamps): the same mesh and encoder give the same bytes on any
