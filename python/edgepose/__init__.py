@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from edgepose._core import __version__
 from edgepose.cloud import cloud_from_depth
-from edgepose.codebook import Codebook, CodebookError, build_codebook
+from edgepose.codebook import Codebook, CodebookError, StaleCodebookWarning, build_codebook
 from edgepose.confidence import TRUST_THRESHOLD
 from edgepose.encoder import Encoder, ModelFilesError
 from edgepose.errors import EdgePoseError, InvalidCloudError, InvalidModelError, MeshLoadError
@@ -43,6 +43,7 @@ __all__ = [
     "InvalidModelError",
     "MeshLoadError",
     "Maps",
+    "StaleCodebookWarning",
     "StandardModel",
     "Viewpoints",
     "compute_maps",

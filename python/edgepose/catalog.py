@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -127,11 +128,13 @@ def is_up_to_date(codebook: str | os.PathLike, mesh_sha256: str, settings: Build
     found (it still works, without what the new search finds). A changed
     ``settings.scale`` is not detected (the codebook records the resulting
     size, not the option)."""
-    from edgepose.codebook import Codebook, CodebookError
+    from edgepose.codebook import Codebook, CodebookError, StaleCodebookWarning
     from edgepose.symmetry import SEARCH_FINGERPRINT
 
     try:
-        book = Codebook.load(codebook, encoder)
+        with warnings.catch_warnings():  # an older search's codebook is stale here: rebuilt, not warned of
+            warnings.simplefilter("ignore", StaleCodebookWarning)
+            book = Codebook.load(codebook, encoder)
     except CodebookError:
         return False
     return (

@@ -30,6 +30,7 @@ import os
 import stat
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -56,6 +57,13 @@ MAX_FILE_BYTES = 64 * 1024 * 1024
 class CodebookError(EdgePoseError):
     """A codebook file that is unreadable, corrupt, of another format version,
     or made by a different encoder than the one in use."""
+
+
+class StaleCodebookWarning(UserWarning):
+    """A codebook whose symmetries and near turns an older symmetry search
+    found (:attr:`Codebook.symmetry_search`): it works, but without what the
+    current search finds (turns the confidence tests and the turned-pose
+    check may switch to); rebuild it (``edgepose build``)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,7 +151,8 @@ class Codebook:
     @classmethod
     def load(cls, path: str | os.PathLike, encoder: Encoder | None = None) -> Codebook:
         """Read a codebook, checking its format, version, sizes and that it was
-        made by ``encoder`` (the shipped one by default)."""
+        made by ``encoder`` (the shipped one by default). Warns
+        (:class:`StaleCodebookWarning`) when an older symmetry search made it."""
         from safetensors import SafetensorError
         from safetensors.numpy import load
 
@@ -165,7 +174,15 @@ class Codebook:
             raise CodebookError(f"{path}: cannot read ({e.strerror or e})") from None
         except (SafetensorError, ValueError, UnicodeDecodeError) as e:
             raise CodebookError(f"{path}: not a valid codebook file ({e})") from None
-        return cls._from_parts(tensors, metadata, encoder, str(path))
+        book = cls._from_parts(tensors, metadata, encoder, str(path))
+        if book.symmetry_search != SEARCH_FINGERPRINT:
+            warnings.warn(
+                f"{path}: its symmetries and near turns were found by an older symmetry search; it works, "
+                "but rebuild it (edgepose build, or build_codebook) for what the current search finds",
+                StaleCodebookWarning,
+                stacklevel=2,
+            )
+        return book
 
     @classmethod
     def _from_parts(
