@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import warnings
 from pathlib import Path
 
 import edgepose
@@ -170,10 +171,12 @@ def test_a_codebook_whose_symmetries_an_older_search_found_is_rebuilt(catalogue,
         metadata["symmetry_search"] = search
     metadata["checksum"] = _checksum(tensors, metadata)  # a valid file, still usable
     (out / "bracket.codebook").write_bytes(_canonical_header(save(tensors, metadata)))
-    with pytest.warns(edgepose.StaleCodebookWarning, match="older symmetry search"):
+    with pytest.warns(edgepose.StaleCodebookWarning, match="older or unknown symmetry search"):
         assert edgepose.Codebook.load(out / "bracket.codebook").symmetry_search == search
 
-    results = build_catalog(find_meshes([catalogue]), out, SETTINGS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", edgepose.StaleCodebookWarning)  # the up-to-date check must not warn
+        results = build_catalog(find_meshes([catalogue]), out, SETTINGS)
     assert [(r.name, r.status) for r in results] == [("box", "skipped"), ("bracket", "built"), ("cylinder", "skipped")]
     assert books(out) == books(local_books)
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,13 +127,11 @@ def is_up_to_date(codebook: str | os.PathLike, mesh_sha256: str, settings: Build
     found (it still works, without what the new search finds). A changed
     ``settings.scale`` is not detected (the codebook records the resulting
     size, not the option)."""
-    from edgepose.codebook import Codebook, CodebookError, StaleCodebookWarning
+    from edgepose.codebook import Codebook, CodebookError
     from edgepose.symmetry import SEARCH_FINGERPRINT
 
     try:
-        with warnings.catch_warnings():  # an older search's codebook is stale here: rebuilt, not warned of
-            warnings.simplefilter("ignore", StaleCodebookWarning)
-            book = Codebook.load(codebook, encoder)
+        book = Codebook._load(codebook, encoder)  # no warning: a stale codebook is rebuilt here
     except CodebookError:
         return False
     return (

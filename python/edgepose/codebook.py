@@ -152,7 +152,20 @@ class Codebook:
     def load(cls, path: str | os.PathLike, encoder: Encoder | None = None) -> Codebook:
         """Read a codebook, checking its format, version, sizes and that it was
         made by ``encoder`` (the shipped one by default). Warns
-        (:class:`StaleCodebookWarning`) when an older symmetry search made it."""
+        (:class:`StaleCodebookWarning`) when an older or unknown symmetry search made it."""
+        book = cls._load(path, encoder)
+        if book.symmetry_search != SEARCH_FINGERPRINT:
+            warnings.warn(
+                f"{path}: its symmetries and near turns were found by an older or unknown symmetry search; it "
+                "works, but rebuild it (edgepose build, or build_codebook) for what the current search finds",
+                StaleCodebookWarning,
+                stacklevel=2,
+            )
+        return book
+
+    @classmethod
+    def _load(cls, path: str | os.PathLike, encoder: Encoder | None = None) -> Codebook:
+        """:meth:`load` without the stale-search warning."""
         from safetensors import SafetensorError
         from safetensors.numpy import load
 
@@ -174,15 +187,7 @@ class Codebook:
             raise CodebookError(f"{path}: cannot read ({e.strerror or e})") from None
         except (SafetensorError, ValueError, UnicodeDecodeError) as e:
             raise CodebookError(f"{path}: not a valid codebook file ({e})") from None
-        book = cls._from_parts(tensors, metadata, encoder, str(path))
-        if book.symmetry_search != SEARCH_FINGERPRINT:
-            warnings.warn(
-                f"{path}: its symmetries and near turns were found by an older symmetry search; it works, "
-                "but rebuild it (edgepose build, or build_codebook) for what the current search finds",
-                StaleCodebookWarning,
-                stacklevel=2,
-            )
-        return book
+        return cls._from_parts(tensors, metadata, encoder, str(path))
 
     @classmethod
     def _from_parts(
