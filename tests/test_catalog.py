@@ -6,7 +6,6 @@ is up to date and rebuild what is not; one bad object never ends a run."""
 from __future__ import annotations
 
 import hashlib
-import json
 import shutil
 import warnings
 from pathlib import Path
@@ -23,9 +22,9 @@ from edgepose.catalog import (
     build_object,
     find_meshes,
 )
-from edgepose.codebook import _canonical_header, _checksum
 from edgepose.symmetry import SEARCH_FINGERPRINT
 from test_cli import run
+from test_codebook import _resealed
 
 SETTINGS = BuildSettings(views=300)
 
@@ -137,16 +136,10 @@ def test_other_views_corrupt_files_and_force_are_rebuilt(catalogue, local_books,
 
 
 def test_a_codebook_of_another_encoder_is_rebuilt(catalogue, local_books, tmp_path):
-    from safetensors.numpy import load, save
-
     out = copy_of(local_books, tmp_path / "books")
-    blob = (out / "cylinder.codebook").read_bytes()
-    tensors = load(blob)
-    size = int.from_bytes(blob[:8], "little")
-    metadata = json.loads(blob[8 : 8 + size])["__metadata__"]
-    metadata["encoder"] = hashlib.sha256(b"another encoder").hexdigest()
-    metadata["checksum"] = _checksum(tensors, metadata)  # a valid file, of another encoder
-    (out / "cylinder.codebook").write_bytes(_canonical_header(save(tensors, metadata)))
+    cylinder = out / "cylinder.codebook"
+    other = hashlib.sha256(b"another encoder").hexdigest()
+    cylinder.write_bytes(_resealed(cylinder.read_bytes(), lambda m: m.update(encoder=other)))  # a valid file
     with pytest.raises(edgepose.CodebookError, match="built by encoder"):
         edgepose.Codebook.load(out / "cylinder.codebook")
 
@@ -157,20 +150,17 @@ def test_a_codebook_of_another_encoder_is_rebuilt(catalogue, local_books, tmp_pa
 
 @pytest.mark.parametrize("search", ["an older search", None])
 def test_a_codebook_whose_symmetries_an_older_search_found_is_rebuilt(catalogue, local_books, tmp_path, search):
-    from safetensors.numpy import load, save
-
     out = copy_of(local_books, tmp_path / "books")
-    blob = (out / "bracket.codebook").read_bytes()
-    tensors = load(blob)
-    size = int.from_bytes(blob[:8], "little")
-    metadata = json.loads(blob[8 : 8 + size])["__metadata__"]
-    assert metadata["symmetry_search"] == SEARCH_FINGERPRINT
-    if search is None:  # saved by an edgepose that recorded no search
-        del metadata["symmetry_search"]
-    else:
-        metadata["symmetry_search"] = search
-    metadata["checksum"] = _checksum(tensors, metadata)  # a valid file, still usable
-    (out / "bracket.codebook").write_bytes(_canonical_header(save(tensors, metadata)))
+    bracket = out / "bracket.codebook"
+
+    def older(metadata: dict) -> None:
+        assert metadata["symmetry_search"] == SEARCH_FINGERPRINT
+        if search is None:  # saved by an edgepose that recorded no search
+            del metadata["symmetry_search"]
+        else:
+            metadata["symmetry_search"] = search
+
+    bracket.write_bytes(_resealed(bracket.read_bytes(), older))  # a valid file, still usable
     with pytest.warns(edgepose.StaleCodebookWarning, match="older or unknown symmetry search"):
         assert edgepose.Codebook.load(out / "bracket.codebook").symmetry_search == search
 
