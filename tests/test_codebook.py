@@ -176,3 +176,14 @@ def test_shipped_codebooks_are_up_to_date_with_this_edgepose(ycb_dir):
     assert len(books) == 5
     for book in books:
         assert is_up_to_date(book, file_sha256(ycb_dir / f"{book.stem}.ply"), BuildSettings()), book.name
+
+
+def test_shipped_codebooks_hold_what_the_symmetry_search_finds_now(ycb_dir):
+    """Catches a change to the search that its fingerprint does not show (the
+    Rust core's distances or ICP): raise ``SEARCH_REVISION`` and rebuild them."""
+    for book in sorted(SHIPPED.glob("*.codebook")):
+        stored = edgepose.Codebook.load(book).symmetry
+        found = edgepose.detect_symmetry(edgepose.load_model(ycb_dir / f"{book.stem}.ply"))
+        for part in ("discrete", "continuous", "near"):
+            a, b = getattr(stored, part), getattr(found, part)
+            assert a.shape == b.shape and np.allclose(a, b, atol=1e-5), (book.name, part)

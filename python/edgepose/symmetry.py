@@ -31,16 +31,20 @@ CONTINUOUS_PROBES_DEG = (37.0, 101.0, 163.0)
 #: surface was sampled): their mean distance is at most this many point
 #: spacings (true symmetries: 0.03–0.11; a hexagon turned 72°: 0.54) ...
 MAX_MEAN_SPACINGS = 0.5
-#: ... and 99 % of them are within this many spacings (true: ≤ 0.3; an
-#: asymmetric part that moves leaves a tail: a box's holes 3.6–5.5).
+#: ... and this quantile of them (99 %) ...
+TAIL_QUANTILE = 0.99
+#: ... is within this many spacings (true: ≤ 0.3; an asymmetric part that
+#: moves leaves a tail: a box's holes 3.6–5.5).
 MAX_Q99_SPACINGS = 1.6
 #: Normal directions tried as axes besides the principal axes (the face
 #: normals of boxes and prisms, whose principal axes are degenerate).
 NORMAL_AXES = 12
 #: Points used to screen candidate turns (and to polish the survivors by ICP,
-#: in this many iterations) before judging them on all points ...
+#: in this many iterations, pairing points within this fraction of the
+#: diameter) before judging them on all points ...
 SCREEN_POINTS = 512
 ICP_ITERATIONS = 15
+ICP_MAX_DIAMETERS = 0.1
 #: ... and the screen's looser mean distance (spacings, tangent planes).
 SCREEN_MEAN_SPACINGS = 1.0
 #: Groups larger than this are cut off (a cube has 24 turns).
@@ -62,11 +66,16 @@ NEAR_MAX_TURNS = 6
 #: about a principal axis or a face normal), by these angles (degrees) ...
 NEAR_PROBE_AXES = 64
 NEAR_PROBE_ANGLES_DEG = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0)
+#: ... they are screened at this many times ``NEAR_MEAN_DIAMETERS`` (an
+#: unpolished probe's axis may be a few degrees off) ...
+NEAR_SCREEN_FACTOR = 2.0
 #: ... and of the probes that screen close, at most this many, spread
 #: ``NEAR_MIN_ANGLE_DEG`` apart and best first, are polished by ICP.
 NEAR_POLISHED = 4 * NEAR_MAX_TURNS
 #: Raised when :func:`detect_symmetry` changes in a way the constants above
-#: do not show (5: near turns about spread axes, a sphere gets none) ...
+#: do not show (5: near turns about spread axes, a sphere gets none; the
+#: Rust core's distances and ICP included: a test compares the shipped
+#: codebooks' symmetries with what the search finds now) ...
 SEARCH_REVISION = 5
 #: ... so that this, recorded in every codebook, tells a codebook whose
 #: symmetries and near turns an older search found (``edgepose build``
@@ -78,10 +87,12 @@ SEARCH_FINGERPRINT = hashlib.sha256(
             ORDERS,
             CONTINUOUS_PROBES_DEG,
             MAX_MEAN_SPACINGS,
+            TAIL_QUANTILE,
             MAX_Q99_SPACINGS,
             NORMAL_AXES,
             SCREEN_POINTS,
             ICP_ITERATIONS,
+            ICP_MAX_DIAMETERS,
             SCREEN_MEAN_SPACINGS,
             MAX_TURNS,
             SAME_TURN_DEG,
@@ -90,6 +101,7 @@ SEARCH_FINGERPRINT = hashlib.sha256(
             NEAR_MAX_TURNS,
             NEAR_PROBE_AXES,
             NEAR_PROBE_ANGLES_DEG,
+            NEAR_SCREEN_FACTOR,
             NEAR_POLISHED,
         )
     ).encode()
@@ -192,7 +204,7 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
         """Which turns (C, 3, 3), (C, 3) map every model point onto the surface."""
         d = index.distances(every, np.ascontiguousarray(R), np.ascontiguousarray(t), True)
         return (d.mean(axis=1) <= MAX_MEAN_SPACINGS * model.spacing) & (
-            np.quantile(d, 0.99, axis=1) <= MAX_Q99_SPACINGS * model.spacing
+            np.quantile(d, TAIL_QUANTILE, axis=1) <= MAX_Q99_SPACINGS * model.spacing
         )
 
     probes = [(a, angle) for a in axes for angle in np.radians([*CONTINUOUS_PROBES_DEG, *(360 / n for n in ORDERS)])]
@@ -202,7 +214,7 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     near = index.distances(screen, R, t, True).mean(axis=1) <= SCREEN_MEAN_SPACINGS * model.spacing
     turns: dict[int, np.ndarray] = {}
     if near.any():
-        icp = index.refine(screen, R[near], t[near], ICP_ITERATIONS, 0.1 * model.diameter)
+        icp = index.refine(screen, R[near], t[near], ICP_ITERATIONS, ICP_MAX_DIAMETERS * model.diameter)
         good = fits(icp.rotations, icp.translations)
         for probe, R_i, t_i, ok in zip(np.flatnonzero(near), icp.rotations, icp.translations, good):
             if ok:
@@ -269,18 +281,17 @@ def _near_turns(
     spread_R = _turns_about_spread_axes()
     R = np.ascontiguousarray(np.concatenate([R, spread_R]))
     t = np.ascontiguousarray(np.concatenate([t, centroid - spread_R @ centroid]))
-    # An unpolished probe's axis may be a few degrees off: screen at twice the limit.
     screened = index.distances(screen, R, t, True).mean(axis=1)
     chosen: list[int] = []
     for i in np.argsort(screened, kind="stable"):
-        if screened[i] > 2 * limit or len(chosen) == NEAR_POLISHED:
+        if screened[i] > NEAR_SCREEN_FACTOR * limit or len(chosen) == NEAR_POLISHED:
             break
         if all(rotation_angle(R[i].T @ R[j]) >= minimum for j in chosen):
             chosen.append(int(i))
     if not chosen:
         return []
     R, t = np.ascontiguousarray(R[chosen]), np.ascontiguousarray(t[chosen])
-    icp = index.refine(screen, R, t, ICP_ITERATIONS, 0.1 * model.diameter)
+    icp = index.refine(screen, R, t, ICP_ITERATIONS, ICP_MAX_DIAMETERS * model.diameter)
     polished = np.array([rotation_angle(Ri) >= minimum for Ri in icp.rotations])
     R_c = np.where(polished[:, None, None], icp.rotations, R)
     t_c = np.where(polished[:, None], icp.translations, t)
