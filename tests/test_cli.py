@@ -183,6 +183,20 @@ def test_estimate_from_npy_ply_and_pcd_clouds(drill, tmp_path):
         assert_close_to_truth(result, view, codebook)
 
 
+def test_estimate_warns_of_a_stale_codebook_in_one_line(drill, tmp_path):
+    from test_codebook import _resealed
+
+    codebook, view = drill
+    stale = tmp_path / "stale.codebook"
+    stale.write_bytes(_resealed(DRILL_CODEBOOK.read_bytes(), lambda m: m.update(symmetry_search="0" * 16)))
+    np.save(tmp_path / "cloud.npy", view.cloud)
+    out = run("estimate", "--codebook", str(stale), str(tmp_path / "cloud.npy"))
+    assert out.returncode == 0, out.stderr
+    assert out.stderr.startswith("warning: ") and "older or unknown symmetry search" in out.stderr, out.stderr
+    assert len(out.stderr.splitlines()) == 1 and "StaleCodebookWarning" not in out.stderr, out.stderr
+    assert_close_to_truth(json.loads(out.stdout), view, codebook)
+
+
 def test_estimate_from_a_depth_png_with_k_and_mask(drill, tmp_path):
     from PIL import Image
 

@@ -4,10 +4,11 @@ consoles, options, ``--version``.
 
 import inspect
 import sys
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, TextIO
 
 import typer
 
@@ -97,16 +98,36 @@ class Failure(Exception):
 
 @contextmanager
 def handle_errors() -> Iterator[None]:
-    """Turn deliberate errors into one stderr line and exit status 1."""
+    """Turn deliberate errors into one stderr line and exit status 1, and a
+    stale codebook's warning into one stderr line (not Python's two, with
+    a source line)."""
     from rich.markup import escape
 
+    from edgepose.codebook import StaleCodebookWarning
     from edgepose.errors import EdgePoseError
 
-    try:
-        yield
-    except (EdgePoseError, Failure) as e:
-        stderr_console().print(f"[red]error:[/red] {escape(str(e))}")
-        raise typer.Exit(1) from None
+    with warnings.catch_warnings():
+        show_other = warnings.showwarning
+
+        def show(
+            message: Warning | str,
+            category: type[Warning],
+            filename: str,
+            lineno: int,
+            file: TextIO | None = None,
+            line: str | None = None,
+        ) -> None:
+            if issubclass(category, StaleCodebookWarning):
+                stderr_console().print(f"[yellow]warning:[/yellow] {escape(str(message))}")
+            else:
+                show_other(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        try:
+            yield
+        except (EdgePoseError, Failure) as e:
+            stderr_console().print(f"[red]error:[/red] {escape(str(e))}")
+            raise typer.Exit(1) from None
 
 
 def stdout_console():
