@@ -188,3 +188,15 @@ def test_a_codebook_with_a_corrupt_symmetry_entry_does_not_load(tmp_path, drill)
     metadata["checksum"] = _checksum(tensors, metadata)
     with pytest.raises(CodebookError, match="rigid turn"):
         Codebook._from_parts(tensors, metadata, edgepose.encoder.default_encoder(), "bad.codebook")
+
+
+def test_turns_exactly_the_limit_apart_are_apart_whichever_way_the_arithmetic_rounds():
+    from edgepose.symmetry import NEAR_MIN_ANGLE_DEG, _apart
+    from edgepose.views import rotation_about
+
+    axes = np.random.default_rng(0).normal(size=(300, 3))
+    for axis in axes / np.linalg.norm(axes, axis=1, keepdims=True):
+        for a, b in ((30, 60), (60, 90), (150, 180), (0, 30)):
+            Ra, Rb = rotation_about(axis, np.radians(a)), rotation_about(axis, np.radians(b))
+            assert _apart(Ra, Rb, NEAR_MIN_ANGLE_DEG) and _apart(Rb, Ra, NEAR_MIN_ANGLE_DEG)
+        assert not _apart(np.eye(3), rotation_about(axis, np.radians(29.9)), NEAR_MIN_ANGLE_DEG)
