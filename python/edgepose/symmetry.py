@@ -78,10 +78,10 @@ NEAR_POLISHED = 4 * NEAR_MAX_TURNS
 #: (27 of the 67 fitting objects' near turns changed when it stopped).
 ROUNDING_RAD = 1e-9
 #: Raised when :func:`detect_symmetry` changes in a way the constants above
-#: do not show (5: near turns about spread axes, a sphere gets none; 6: turns
-#: exactly a limit apart reach it, ``ROUNDING_RAD``; the
-#: Rust core's distances and ICP included: a test compares the shipped
-#: codebooks' symmetries with what the search finds now) ...
+#: do not show, the Rust core's distances and ICP included (a test compares
+#: the shipped codebooks' symmetries with what the search finds now).
+#: 5: near turns about spread axes, a sphere gets none; 6: turns exactly a
+#: limit apart reach it (``ROUNDING_RAD``) ...
 SEARCH_REVISION = 6
 #: ... so that this, recorded in every codebook, tells a codebook whose
 #: symmetries and near turns an older search found (``edgepose build``
