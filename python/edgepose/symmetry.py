@@ -81,7 +81,8 @@ ROUNDING_RAD = 1e-9
 #: do not show, the Rust core's distances and ICP included (a test compares
 #: the shipped codebooks' symmetries with what the search finds now).
 #: 5: near turns about spread axes, a sphere gets none; 6: turns exactly a
-#: limit apart reach it (``ROUNDING_RAD``) ...
+#: limit apart reach it (``ROUNDING_RAD``), and an object with a continuous
+#: symmetry has at most a flip besides ...
 SEARCH_REVISION = 6
 #: ... so that this, recorded in every codebook, tells a codebook whose
 #: symmetries and near turns an older search found (``edgepose build``
@@ -197,8 +198,8 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     ICP of the model onto itself (a sampled axis is a degree or two off),
     and counts when the turned points then lie on the model
     (``MAX_MEAN_SPACINGS``, ``MAX_Q99_SPACINGS``). An axis whose three odd
-    turns all count is continuous; the other turns
-    are closed into their group. Near turns (:func:`_near_turns`) are
+    turns all count is continuous, and then only a flip across it is kept
+    besides; else the turns are closed into their group. Near turns (:func:`_near_turns`) are
     sought too. Deterministic; 0.1–0.3 s."""
     index = index or _core.ModelIndex(model.core)
     points = model.points.astype(np.float64)
@@ -243,15 +244,14 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
             abs(axis @ c) < np.cos(np.radians(SAME_TURN_DEG)) for c, _ in continuous
         ):
             continuous.append((axis, point))
-    generators = [
-        T
-        for i, T in sorted(turns.items())
-        if not any(abs(rotation_axis(T[:3, :3]) @ c) > np.cos(np.radians(SAME_TURN_DEG)) for c, _ in continuous)
-    ]
+    generators = [T for _, T in sorted(turns.items())]
     if continuous:
-        # Turns about the axis are covered; any flip across it is the same
-        # flip up to such a turn, so one is kept.
-        generators = generators[:1]
+        # Turns about the axis are covered, and any flip across it (the axis
+        # end for end) is the same flip up to such a turn, so one is kept. A
+        # turn that tilts the axis is a loose fit, not a symmetry (a gear
+        # turned by about a tooth and tilted 8° passed).
+        axis = continuous[0][0]
+        generators = [T for T in generators if axis @ T[:3, :3] @ axis < -np.cos(np.radians(SAME_TURN_DEG))][:1]
     group = _closure(generators)
     if len(continuous) > 1:  # two continuous axes: a sphere, every axis
         continuous, group = [(np.eye(3)[i], centroid) for i in range(3)], []
