@@ -1009,15 +1009,19 @@ mod tests {
         assert_eq!(stray, 0, "flying pixels more than 1 cm off the object kept");
     }
 
-    /// A 10 cm deep box at 0.6 m whose right side is seen `steepness`
-    /// degrees from face-on, beside a wall at 0.75 m, sampled evenly in the
-    /// image through a mask that spills 4 columns onto the wall: (cloud,
-    /// what each point is).
-    fn box_with_a_steep_side(steepness: f64) -> (Vec<Point3>, Vec<Surface>) {
+    /// A box's face at 0.6 m whose right side, seen `steepness` degrees
+    /// from face-on, runs back to `far` metres, sampled evenly in the image
+    /// through a mask that spills `wall_columns` columns onto a wall at
+    /// 0.75 m beside it (none: no wall): (cloud, what each point is).
+    fn box_with_a_steep_side(
+        steepness: f64,
+        far: f64,
+        wall_columns: f64,
+    ) -> (Vec<Point3>, Vec<Surface>) {
         let slope = steepness.to_radians().tan();
-        // The side runs from the front's edge (u = 0, 0.6 m) to 0.7 m.
-        let side_end = (1.0 - 0.6 / 0.7) / slope;
-        let wall_end = side_end + 4.0 * 0.002 / 0.75;
+        // The side runs from the front's edge (u = 0, 0.6 m) to `far`.
+        let side_end = (1.0 - 0.6 / far) / slope;
+        let wall_end = side_end + wall_columns * 0.002 / 0.75;
         sampled_in_image(wall_end, |u| {
             if u < 0.0 {
                 (0.6, Surface::Front)
@@ -1029,28 +1033,13 @@ mod tests {
         })
     }
 
-    /// A box's face at 0.6 m whose right side, seen `steepness` degrees
-    /// from face-on, runs back to `far` metres, without a wall beside it:
-    /// (cloud, what each point is).
-    fn box_with_a_deep_steep_side(steepness: f64, far: f64) -> (Vec<Point3>, Vec<Surface>) {
-        let slope = steepness.to_radians().tan();
-        let side_end = (1.0 - 0.6 / far) / slope;
-        sampled_in_image(side_end, |u| {
-            if u < 0.0 {
-                (0.6, Surface::Front)
-            } else {
-                (0.6 / (1.0 - u * slope), Surface::Side)
-            }
-        })
-    }
-
     #[test]
     fn a_deep_steep_face_is_put_back_whole() {
         // A side 85–87° from face-on running 20–30 cm back: over a point's
         // image neighbours its depth curves, and a plane fitted to depth
         // itself left 59 % of it (85°, to 0.9 m) and 79–85 % (87°) out.
         for (steepness, far) in [(85.0, 0.9), (87.0, 0.8), (87.0, 0.9)] {
-            let (cloud, what) = box_with_a_deep_steep_side(steepness, far);
+            let (cloud, what) = box_with_a_steep_side(steepness, far, 0.0);
             let [_, [front, side]] = kept_shares(&cloud, &what, [Surface::Front, Surface::Side]);
             assert!(front >= 0.99, "{steepness}° to {far} m: front {front}");
             assert!(side >= 0.9, "{steepness}° to {far} m: side {side}");
@@ -1150,7 +1139,7 @@ mod tests {
         // it at 85°. The wall strip the mask spilled onto (some of which
         // steps 1 and 2 keep as a component) does not grow.
         for (steepness, least) in [(75.0, 0.7), (80.0, 0.6), (85.0, 0.3)] {
-            let (cloud, what) = box_with_a_steep_side(steepness);
+            let (cloud, what) = box_with_a_steep_side(steepness, 0.7, 4.0);
             let [[_, side_before, wall_before], [front, side, wall]] = kept_shares(
                 &cloud,
                 &what,
