@@ -254,6 +254,26 @@ def test_a_doubtful_pose_gets_a_second_wider_search_that_never_does_worse(drill)
         assert errors(both, view, codebook).add < 0.1 * codebook.model.diameter
 
 
+def test_a_pose_below_the_retry_confidence_is_searched_again(drill):
+    # A clean view's pose is neither unrefined nor short of points nor in
+    # free space: only its confidence can send it to the second search.
+    mesh, codebook = drill
+    view = render_view(mesh, seed=3)
+    settings = edgepose.EstimateSettings()
+    trusted = edgepose.estimate(view.cloud, codebook, settings=settings.with_(retry_below_confidence=0.0))
+    assert trusted.searches == 1 and 0.0 < trusted.confidence < 1.0
+    retried = edgepose.estimate(
+        view.cloud, codebook, settings=settings.with_(retry_below_confidence=trusted.confidence + 1e-9)
+    )
+    assert retried.searches == 2 and "pair_poses" in retried.timings
+    # The wider search keeps the first pose unless it explains more.
+    net = lambda p: p.inlier_fraction - p.free_space_violation  # noqa: E731
+    assert net(retried) >= net(trusted) - 1e-12
+    assert errors(retried, view, codebook).add < 0.1 * codebook.model.diameter
+    default = edgepose.estimate(view.cloud, codebook)
+    assert default.searches == (2 if trusted.confidence < settings.retry_below_confidence else 1)
+
+
 def test_doubt_is_a_pose_that_explains_too_few_points_or_violates_free_space(drill):
     from edgepose.pose import doubtful, explains_more
     from edgepose.stages import PoseScores, Refined, prepare_query

@@ -99,7 +99,7 @@ class Pose:
     on a wrong pose costs more than looking again. The lowest threshold that
     let at most 5 % of the wrong poses through (:data:`edgepose.confidence.STRICT_WRONG_ACCEPTED`)
     on the fitting data's cross-validated stressed views, recorded with the
-    model that judged this pose (0.97 from a cloud alone and given the
+    model that judged this pose (0.98 from a cloud alone and given the
     frame, with the shipped networks); NaN without one."""
     evidence: dict = field(default_factory=dict)
     """The scoring terms ``confidence`` is computed from, by name
