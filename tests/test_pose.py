@@ -21,6 +21,11 @@ def errors(pose, view, codebook):
     return pose_errors(model_points, pose.matrix, view.T_cam_obj, codebook.model.diameter, symmetric=False)
 
 
+def net(pose):
+    """What a second search must beat to replace a pose: its inlier fraction minus free-space violation."""
+    return pose.inlier_fraction - pose.free_space_violation
+
+
 def test_recovers_rendered_poses_of_an_unseen_object(drill):
     mesh, codebook = drill
     correct, rotation_deg, translation_mm = 0, [], []
@@ -249,7 +254,6 @@ def test_a_doubtful_pose_gets_a_second_wider_search_that_never_does_worse(drill)
         ranking = retrieve(prepare_query(view.cloud, codebook), codebook, default_encoder(), 48).views
         np.testing.assert_array_equal(wider.candidates[:48], ranking)  # 32 more views down the cosine ranking
         assert len(wider.candidates) == len(both.candidates) + 32
-        net = lambda p: p.inlier_fraction - p.free_space_violation  # noqa: E731
         assert net(both) >= net(first) - 1e-12
         assert errors(both, view, codebook).add < 0.1 * codebook.model.diameter
 
@@ -267,7 +271,6 @@ def test_a_pose_below_the_retry_confidence_is_searched_again(drill):
     )
     assert retried.searches == 2 and "pair_poses" in retried.timings
     # The wider search keeps the first pose unless it explains more.
-    net = lambda p: p.inlier_fraction - p.free_space_violation  # noqa: E731
     assert net(retried) >= net(trusted) - 1e-12
     assert errors(retried, view, codebook).add < 0.1 * codebook.model.diameter
     default = edgepose.estimate(view.cloud, codebook)
