@@ -268,6 +268,8 @@ def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[
         "score",
         "confidence",
         "strict_threshold",
+        "alternatives",
+        "alternative_correct",
         "error",
     ]
     with path.open("w", newline="") as f:
@@ -300,6 +302,8 @@ def write_views_csv(path: Path, runs: dict[str, list[MethodRun]], objects: dict[
                             f"{v.score:.6g}",
                             f"{v.confidence:.4f}",
                             f"{v.strict_threshold:.2f}",
+                            v.alternatives,
+                            int(v.alternative_correct),
                             v.error,
                         ]
                     )
@@ -639,6 +643,11 @@ the model of the manifest's `confidence.with_scene` where it has one:
         if framed
         else ""
     )
+    alternatives_with_frame = (
+        f"\n\nGiven each view's depth frame too (`edgepose-frame`):\n\n{report.alternatives_table(framed)}"
+        if framed
+        else ""
+    )
     return f"""## Confidence (edgepose)
 
 `Pose.confidence` is the probability that the pose is correct (ADD(-S) < 0.1 × diameter), from a
@@ -651,7 +660,17 @@ AUROC: chance that a correct pose scores above a wrong one; ECE: expected calibr
 
 {report.confidence_table(groups)}{with_frame}
 
-![reliability diagram]({extra_files["reliability"].name})"""
+![reliability diagram]({extra_files["reliability"].name})
+
+### Alternatives
+
+`Pose.alternatives`: other poses that explain the view nearly as well (within
+`EstimateSettings.alternative_within` of the pose's explained share net of violations), each more than
+0.1 × diameter from the pose and from each other: where the object may be instead. Of the wrong poses,
+how many had the truth among them; of the right poses, how many came with any (a robot that looks
+again whenever there are alternatives looks again this often when it need not).
+
+{report.alternatives_table(groups)}{alternatives_with_frame}"""
 
 
 def main() -> None:

@@ -9,8 +9,8 @@ Views: the five shared YCB meshes, ``--views`` seeds at each of ``--stress``
 levels (default clean, visible70, spill5, noise_far). Compared, exactly (no
 tolerance): each codebook's codes, spectra and centroids, and per view the
 pose matrix, fit, score, chosen view, candidates, candidate fits, inlier
-fraction, free-space violation, kept points, confidence, searches and
-evidence. Run with
+fraction, free-space violation, kept points, confidence, searches,
+evidence and alternatives (matrices and margins). Run with
 ``RAYON_NUM_THREADS=1`` on both sides if a reduction order could depend on
 threads. Exits 1 when anything differs and names the first difference.
 """
@@ -63,6 +63,9 @@ def digest(views: int, stress: list[str]) -> dict[str, np.ndarray]:
                 arrays[f"{key}/evidence"] = np.array([pose.evidence[k] for k in sorted(pose.evidence)])
                 arrays[f"{key}/candidates"] = np.asarray(pose.candidates)
                 arrays[f"{key}/candidate_fit"] = np.asarray(pose.candidate_fit)
+                arrays[f"{key}/alternatives"] = np.array(
+                    [[*a.matrix.ravel(), a.margin] for a in pose.alternatives], dtype=np.float64
+                ).reshape(-1, 17)
         print(f"{name}: done", file=sys.stderr)
     return arrays
 

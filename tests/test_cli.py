@@ -180,6 +180,7 @@ def test_estimate_from_npy_ply_and_pcd_clouds(drill, tmp_path):
         # The default and the strict rule both trust a clean view's pose.
         assert result["trusted"] and result["trusted_strict"]
         assert result["confidence"] >= result["strict_threshold"] > 0.5
+        assert all(set(a) == {"matrix", "margin"} and len(a["matrix"]) == 4 for a in result["alternatives"])
         assert_close_to_truth(result, view, codebook)
 
 

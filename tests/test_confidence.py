@@ -244,6 +244,28 @@ def test_the_benchmark_counts_what_each_poses_strict_rule_accepts():
     assert unknown is not None and np.isnan(unknown.strict_correct_kept) and unknown.strict_thresholds == ()
 
 
+def test_the_benchmark_counts_wrong_poses_with_the_truth_among_their_alternatives():
+    from edgepose.eval.baselines import EdgePoseMethod
+    from edgepose.eval.benchmark import BenchObject, run_method
+    from edgepose.eval.render import render_view
+    from edgepose.report import alternatives_table
+    from test_pose import looking_at, tabbed_box
+
+    # Seen from below, the tabbed box's pose and its half turn explain the view alike.
+    mesh = tabbed_box()
+    poses = [looking_at(-1.0, seed) for seed in range(4)]
+    clouds = [render_view(mesh, T_cam_obj=T, seed=seed).cloud for seed, T in enumerate(poses)]
+    points = np.asarray(mesh.sample(2000, seed=0), dtype=np.float64)
+    d = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    box = BenchObject("tabbed_box", mesh, points, d, False, list(range(4)), clouds, poses)
+    views = run_method(EdgePoseMethod(), [box]).views
+    assert all(v.alternatives >= 1 for v in views)
+    assert all(v.errors.correct_add_or_s != v.alternative_correct for v in views)  # one of the two is the truth
+    wrong = sum(not v.errors.correct_add_or_s for v in views)
+    row = alternatives_table({"from below": views}).splitlines()[-1].split(" | ")
+    assert row[1:4] == ["4", f"{wrong}", f"{wrong}"]
+
+
 def test_auroc_counts_ordered_pairs_and_ties():
     assert auroc([0.9, 0.8, 0.2, 0.1], [True, True, False, False]) == 1.0
     assert auroc([0.1, 0.2, 0.8, 0.9], [True, True, False, False]) == 0.0

@@ -56,6 +56,7 @@ def test_refinement_improves_the_fit(drill):
         "score_poses",
         "refine_hypotheses",
         "confidence",
+        "alternatives",
         "total",
     }
     assert len(fine.candidates) == 16 and fine.view in fine.candidates
@@ -83,6 +84,65 @@ def test_turned_over_poses_of_a_near_symmetric_object_are_told_apart(ycb_dir):
     ]
     assert sum(e.correct_add_or_s for e in refined) >= 11, [round(e.rotation_deg) for e in refined]
     assert sum(e.rotation_deg > 150 for e in unrefined) >= 3, "these views should include turned-over candidates"
+
+
+def tabbed_box() -> trimesh.Trimesh:
+    """A 12 × 6 × 4 cm box with a 2 cm cube on its top face near one end: seen
+    from below, the box turned a half turn about its z axis looks the same."""
+    tab = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+    tab.apply_translation((0.04, 0.0, 0.03))
+    return trimesh.util.concatenate([trimesh.creation.box(extents=(0.12, 0.06, 0.04)), tab])
+
+
+def looking_at(side: float, seed: int) -> np.ndarray:
+    """T_cam_obj of a camera 0.6 m away looking at an object's top (``side``
+    1) or bottom (−1) face, tilted up to ~15° and turned about its axis (seeded)."""
+    rng = np.random.default_rng(seed)
+    towards_camera = np.array([0.0, 0.0, side]) + rng.normal(size=3) * 0.25
+    z = -towards_camera / np.linalg.norm(towards_camera)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    a = rng.uniform(0, 2 * np.pi)
+    spin = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = (np.stack([x, np.cross(z, x), z], axis=1) @ spin).T
+    T[:3, 3] = [0.0, 0.0, 0.6]
+    return T
+
+
+def test_a_view_that_cannot_tell_a_pose_from_its_turn_offers_the_turn_as_an_alternative():
+    mesh = tabbed_box()
+    codebook = edgepose.build_codebook(mesh)
+    assert not codebook.symmetry.symmetric  # the tab breaks the box's symmetry
+    points, d = codebook.model.mesh_points, codebook.model.diameter
+    half_turn = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+    def right(T, truth):
+        return pose_errors(points, T, truth, d, symmetric=False).correct_add_or_s
+
+    for seed in range(4):
+        # From below the tab is hidden: the pose is the truth or its turn, and the other is offered.
+        truth = looking_at(-1.0, seed)
+        pose = edgepose.estimate(render_view(mesh, T_cam_obj=truth, seed=seed).cloud, codebook)
+        found = [pose.matrix, *(a.matrix for a in pose.alternatives)]
+        assert any(right(T, truth) for T in found) and any(right(T, truth @ half_turn) for T in found), seed
+        margins = [a.margin for a in pose.alternatives]
+        assert margins == sorted(margins) and all(m <= edgepose.EstimateSettings().alternative_within for m in margins)
+        for i, T in enumerate(found):  # distinct from the pose and from each other
+            assert all(pose_errors(points, T, other, d, symmetric=False).add >= 0.1 * d for other in found[i + 1 :]), (
+                seed
+            )
+        # From above the tab tells them apart: the turn is no alternative.
+        truth = looking_at(1.0, seed)
+        pose = edgepose.estimate(render_view(mesh, T_cam_obj=truth, seed=seed).cloud, codebook)
+        assert right(pose.matrix, truth), seed
+        assert not any(right(a.matrix, truth @ half_turn) for a in pose.alternatives), seed
+    none = edgepose.estimate(
+        render_view(mesh, T_cam_obj=looking_at(-1.0, 0), seed=0).cloud,
+        codebook,
+        settings=edgepose.EstimateSettings(alternatives=0),
+    )
+    assert none.alternatives == ()
 
 
 def test_distinct_hypotheses_skip_near_duplicates():

@@ -15,7 +15,7 @@ from edgepose.errors import EdgePoseError, InvalidCloudError, InvalidModelError,
 from edgepose.frame import FramePoses, estimate_many
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
 from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
-from edgepose.pose import Pose, estimate
+from edgepose.pose import Alternative, Pose, estimate
 from edgepose.settings import EstimateSettings
 from edgepose.symmetry import Symmetry, detect_symmetry
 from edgepose.track import Tracker, TrackSettings
@@ -23,6 +23,7 @@ from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
 
 __all__ = [
     "__version__",
+    "Alternative",
     "Codebook",
     "CodebookError",
     "EdgePoseError",

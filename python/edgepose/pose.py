@@ -28,6 +28,7 @@ from edgepose.stages import (
     PoseScores,
     Query,
     Refined,
+    alternatives,
     candidate_poses,
     flip_margin,
     flip_rival,
@@ -40,6 +41,35 @@ from edgepose.stages import (
     turned_pose,
 )
 from edgepose.symmetry import NO_SYMMETRY, Symmetry
+
+
+def transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(4, 4) float64 ``T_cam_obj`` of rotation ``R`` and translation ``t`` (metres)."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class Alternative:
+    """Another pose of the object that explains the view nearly as well as
+    the estimate (:attr:`Pose.alternatives`): where the object may be
+    instead when the view cannot tell."""
+
+    R: np.ndarray
+    """(3, 3) float64 rotation object → camera."""
+    t: np.ndarray
+    """(3,) float64 translation, metres: ``p_cam = R @ p_obj + t``."""
+    margin: float
+    """How much more of the view the estimate explains than this pose:
+    inlier fraction minus free-space (and scene) violations, the estimate's
+    minus this one's, on the same observed points; at most
+    ``settings.alternative_within``, below 0 when this one explains more."""
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 ``T_cam_obj``."""
+        return transform(self.R, self.t)
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,7 +101,7 @@ class Pose:
     second search ran), then confidence (the
     evidence and its probability), turned_pose (only when the flip margin
     was low enough to try the pose's best turned rival: that and, if it
-    replaced the pose, its confidence), and the total."""
+    replaced the pose, its confidence), alternatives, and the total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
     points near the model)."""
@@ -107,6 +137,16 @@ class Pose:
     symmetry: Symmetry = NO_SYMMETRY
     """The object's rotational symmetries (object frame): the pose is only
     defined up to them, so a pose turned by one is equally right."""
+    alternatives: tuple[Alternative, ...] = ()
+    """Other poses that explain the view nearly as well, best first: the
+    search's other hypotheses and this pose turned by one of the object's
+    near symmetries, each more than 0.1 × diameter from this pose and from
+    each other (ADD-S for a symmetric object). When the pose is wrong the
+    truth is often among them (a banana end for end, a box whose telling
+    side is hidden): look again from where they differ. They come from
+    the search's coarse ICP, not the final polish (a few millimetres
+    coarser). At most ``settings.alternatives``; none for a tracked frame
+    or an unrefined pose (:func:`edgepose.stages.alternatives`)."""
     mode: str = "estimated"
     """How the pose was obtained: ``estimated`` (by :func:`estimate`), or by
     a :class:`edgepose.Tracker`: ``tracked`` (refined from the last frame),
@@ -122,9 +162,7 @@ class Pose:
     @property
     def matrix(self) -> np.ndarray:
         """(4, 4) float64 ``T_cam_obj``."""
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = self.R, self.t
-        return T
+        return transform(self.R, self.t)
 
 
 def estimate(
@@ -292,6 +330,7 @@ def pose_from_query(
 
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
+    searched = result  # the last search's pick: its hypotheses are the alternatives' pool
     loose = loose_scores(query, codebook, result, settings)
     searches = 1
     may_retry = retry_k > k or pairs > 0
@@ -312,7 +351,7 @@ def pose_from_query(
         wider = best_pose(
             query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
         )
-        searches = 2
+        searches, searched = 2, wider
         # The first pose's flip margin, if it was judged, unless the wider search beats it.
         if explains_more(wider, result):
             result, loose, flips = wider, loose_scores(query, codebook, wider, settings), None
@@ -328,6 +367,8 @@ def pose_from_query(
             result, loose = turned, loose_scores(query, codebook, turned, settings)
             evidence, confidence, flips = judged(found, result, loose, searches)
         laps("turned_pose")
+    others = alternatives(query, codebook, result, searched.hypotheses, flips.rival, settings)
+    laps("alternatives")
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model
@@ -351,6 +392,9 @@ def pose_from_query(
         strict_threshold=judge.strict_threshold if judge else float("nan"),
         evidence=evidence,
         symmetry=codebook.symmetry,
+        alternatives=tuple(
+            Alternative(R, t - R @ model.centre, float(result.scores.net[0] - net)) for R, t, net in zip(*others)
+        ),
     )
 
 

@@ -120,6 +120,7 @@ def pose_json(pose: Pose, points: int) -> dict[str, Any]:
         "strict_threshold": pose.strict_threshold if np.isfinite(pose.strict_threshold) else None,
         "trusted_strict": bool(pose.confidence >= pose.strict_threshold),
         "symmetry": pose.symmetry.describe(),
+        "alternatives": [{"matrix": a.matrix.tolist(), "margin": a.margin} for a in pose.alternatives],
         "score": pose.score,
         "fit": pose.fit,
         "view": pose.view,
@@ -173,6 +174,14 @@ def estimate_caption(cloud_name: str, points: int, pose: Pose, e: PoseErrors | N
     return lines
 
 
+def alternatives_text(pose: Pose) -> str:
+    """How many other poses explain the view nearly as well, and by how much less."""
+    if not pose.alternatives:
+        return "none"
+    margins = ", ".join(f"{a.margin:.3f}" for a in pose.alternatives)
+    return f"{len(pose.alternatives)} (explaining less by {margins})"
+
+
 def trust_text(confidence: float, strict_threshold: float = float("nan")) -> str:
     """What the default rule, and the strict one when known, say about a confidence."""
     if confidence != confidence:  # NaN
@@ -209,7 +218,7 @@ def demo_text(
         f"[bold]errors[/bold]      rotation {e.rotation_deg:.2f}°, translation {e.translation_mm:.1f} mm, "
         f"{metric} {e.add_or_s * 1000:.1f} mm ({verdict} at 0.1 × diameter = {threshold_mm:.1f} mm)",
         f"[bold]confidence[/bold]  {pose.confidence:.2f} ({trust_text(pose.confidence, pose.strict_threshold)}); "
-        f"symmetries: {pose.symmetry.describe()}",
+        f"symmetries: {pose.symmetry.describe()}; alternatives: {alternatives_text(pose)}",
         f"[bold]timings[/bold]     {pose.timings['total'] * 1000:.1f} ms in all ({stages} ms)",
     ]
     caption = [
@@ -428,4 +437,36 @@ def confidence_rows(groups: dict[str, list[ViewResult]]) -> tuple[list[str], lis
 def confidence_table(groups: dict[str, list[ViewResult]]) -> str:
     """:func:`confidence_rows` as markdown."""
     header, rows = confidence_rows(groups)
+    return markdown_table(header, "l" + "r" * (len(header) - 1), rows)
+
+
+def alternatives_table(groups: dict[str, list[ViewResult]]) -> str:
+    """Per group of views (as :func:`confidence_rows`), markdown: of the wrong
+    poses, how many had the truth among ``Pose.alternatives`` (all, and those
+    trusted at the default rule); of the right ones, how many came with any."""
+    rows = []
+    for label, views in groups.items():
+        wrong = [v for v in views if not v.errors.correct_add_or_s]
+        right = [v for v in views if v.errors.correct_add_or_s]
+        trusted = [v for v in wrong if v.confidence >= TRUST_THRESHOLD]
+        rows.append(
+            [
+                label,
+                f"{len(views)}",
+                f"{len(wrong)}",
+                f"{sum(v.alternative_correct for v in wrong)}",
+                f"{sum(v.alternative_correct for v in trusted)} of {len(trusted)}",
+                f"{100 * np.mean([v.alternatives > 0 for v in right]):.1f} %" if right else "–",
+                f"{np.mean([v.alternatives for v in views]):.2f}",
+            ]
+        )
+    header = [
+        "views of",
+        "views",
+        "wrong",
+        "wrong, truth among alternatives",
+        f"... of those trusted (≥ {TRUST_THRESHOLD})",
+        "right with any alternative",
+        "alternatives per pose",
+    ]
     return markdown_table(header, "l" + "r" * (len(header) - 1), rows)

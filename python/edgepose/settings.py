@@ -214,6 +214,12 @@ class EstimateSettings:
     As shipped, there 68.6 → 71.6 % of poses correct; on fresh seeds (from
     778600) 58.8 → 60.7 % (16 right, 5 wrong), and on the six tuning parts
     95.0 → 96.0 % (4 right, none wrong; the check ran on 9 % of views)."""
+    alternatives: int = 3
+    """``Pose.alternatives``: at most this many other poses that explain the
+    view nearly as well (0: none looked for) ..."""
+    alternative_within: float = 0.05
+    """... within this much of the pose's share of explained points net of
+    violations (inlier fraction minus free-space and scene violations)."""
     coarse_icp_on_two_cores: bool = True
     """Split the coarse ICPs of a search's new hypotheses, when there are
     2 or 3 (the first search's; the second search's starts not already

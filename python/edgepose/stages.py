@@ -369,6 +369,60 @@ def turned_pose(
     return result._replace(R=R[0], t=t[0], scores=scores, refined=True, margin=gain, rival=rival)
 
 
+def alternatives(
+    query: Query,
+    codebook: Codebook,
+    result: Refined,
+    hypotheses: Hypotheses | None,
+    rival: FlipRival,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+) -> Hypotheses:
+    """Other poses (model frame → camera) that explain the view nearly as
+    well as the search's pose ``result``: of the search's ``hypotheses``
+    (after their coarse ICP) and the pose's turned ``rival`` (settled,
+    :func:`flip_rival`), those whose net (inlier fraction minus violations
+    on the hypotheses' observed points, :attr:`PoseScores.net`) is within
+    ``settings.alternative_within`` of the pose's, each more than
+    ``RIVAL_DISTANCE`` × d from the pose and from each other (ADD, or ADD-S
+    for a symmetric object), best first, at most ``settings.alternatives``.
+    Nothing is refined again: they cost a few distances. Empty for a pose
+    stage 5 did not refine."""
+    found = [Hypotheses(result.R[None], result.t[None], result.scores.net)]
+    if settings.alternatives > 0 and result.refined:
+        if hypotheses is not None:
+            found.append(hypotheses)
+        if len(rival.rotations):
+            found.append(Hypotheses(rival.rotations, rival.translations, np.array([rival.net])))
+    R, t, net = (np.concatenate(column) for column in zip(*found))
+    allowed = net >= net[0] - settings.alternative_within
+    picked = distinct_poses(codebook, R, t, np.argsort(-net, kind="stable"), allowed, settings.alternatives)
+    return Hypotheses(R[picked], t[picked], net[picked])
+
+
+def distinct_poses(
+    codebook: Codebook,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    order: np.ndarray,
+    allowed: np.ndarray,
+    count: int,
+) -> list[int]:
+    """Up to ``count`` indices of poses (model frame → camera), taken in
+    ``order`` where ``allowed``, each more than ``RIVAL_DISTANCE`` × d from
+    pose 0 and from those taken before."""
+    apart = allowed & (pose_distances(codebook, rotations, translations, 0) > RIVAL_DISTANCE * codebook.model.diameter)
+    taken: list[int] = []
+    for i in order:
+        if len(taken) == count:
+            break
+        if apart[i]:
+            taken.append(int(i))
+            apart &= (
+                pose_distances(codebook, rotations, translations, int(i)) > RIVAL_DISTANCE * codebook.model.diameter
+            )
+    return taken
+
+
 def score_poses(
     query: Query,
     codebook: Codebook,
@@ -420,6 +474,20 @@ class Refined(NamedTuple):
     from the pose before its polish (:func:`polished`); None for a pose
     that was not polished there (stage 5 did not refine it, a turned pose
     left unpolished): the confidence then finds it from the pose itself."""
+    hypotheses: Hypotheses | None = None
+    """The search's usable refined hypotheses, the chosen one among them
+    (:func:`alternatives` looks there); None when stage 5 did not run."""
+
+
+class Hypotheses(NamedTuple):
+    """Stage 5's hypotheses after their coarse ICP (model frame → camera)."""
+
+    rotations: np.ndarray
+    """(H, 3, 3)."""
+    translations: np.ndarray
+    """(H, 3), metres."""
+    net: np.ndarray
+    """(H,) inlier fraction minus violations on the hypotheses' observed points (:attr:`PoseScores.net`)."""
 
 
 def refine_hypotheses(
@@ -489,6 +557,7 @@ def refine_hypotheses(
         margin,
         rmse_ratio,
         rival,
+        Hypotheses(hyp_R[usable], hyp_t[usable], net[usable]),
     )
     if fine_icp is not None:
         fine_R, fine_t = fine_icp.rotations, fine_icp.translations

@@ -76,6 +76,8 @@ class LastRun:
     """Probability that the pose is correct (edgepose's ``Pose.confidence``; NaN for the peers)."""
     strict_threshold: float = float("nan")
     """edgepose's ``Pose.strict_threshold`` (NaN for the peers)."""
+    alternatives: tuple[np.ndarray, ...] = ()
+    """``T_cam_obj`` (4x4) of each of edgepose's ``Pose.alternatives`` (none for the peers)."""
 
 
 class Open3DBaseline:
@@ -327,6 +329,7 @@ class EdgePoseMethod:
             timings=dict(timings) if isinstance(timings, dict) else {},
             confidence=float(getattr(pose, "confidence", float("nan"))),
             strict_threshold=float(getattr(pose, "strict_threshold", float("nan"))),
+            alternatives=tuple(a.matrix for a in getattr(pose, "alternatives", ())),
         )
         return np.asarray(pose.matrix, dtype=np.float64)
 

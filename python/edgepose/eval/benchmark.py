@@ -72,6 +72,10 @@ class ViewResult:
     """The method's probability that the pose is correct (edgepose; NaN for methods without one)."""
     strict_threshold: float = float("nan")
     """The confidence its strict rule asks for (edgepose's ``Pose.strict_threshold``; NaN: none)."""
+    alternatives: int = 0
+    """How many other poses the method offered (edgepose's ``Pose.alternatives``) ..."""
+    alternative_correct: bool = False
+    """... and whether one of them is within ADD(-S) < 0.1 × diameter of the truth."""
 
 
 @dataclass
@@ -189,6 +193,7 @@ def run_method(
         for i, (cloud, T_gt, seed) in enumerate(zip(obj.clouds, obj.poses, obj.seeds)):
             T_est, latency, error = timed_estimate(method, cloud, frames[i])
             last = getattr(method, "last", None)
+            alternatives = getattr(last, "alternatives", ()) if not error else ()
             result = ViewResult(
                 method=name,
                 object=obj.name,
@@ -202,6 +207,10 @@ def run_method(
                 error=error,
                 confidence=float(getattr(last, "confidence", np.nan)) if not error else 0.0,
                 strict_threshold=float(getattr(last, "strict_threshold", np.nan)),
+                alternatives=len(alternatives),
+                alternative_correct=any(
+                    pose_errors(obj.points, T, T_gt, obj.diameter, obj.symmetric).correct_add_or_s for T in alternatives
+                ),
             )
             run.views.append(result)
             done.append(result)
