@@ -49,9 +49,12 @@ def test_a_turned_pose_is_less_trusted_than_the_right_one(drill):
     from edgepose.confidence import evidence_of
 
     model = edgepose.encoder.default_encoder().confidence
-    good = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2, 0.2, 0.5, 0.0, 0.5)
-    bad = evidence_of(0.6, 0.8, 0.8, 0.2, 0.7, 2, True, 0.0, 0.4, 1.2, 0.2, 0.0, 0.98, 1.0)
+    good = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2, 0.2, 0.5, 0.0, 0.5, 0, 1.0)
+    bad = evidence_of(0.6, 0.8, 0.8, 0.2, 0.7, 2, True, 0.0, 0.4, 1.2, 0.2, 0.0, 0.98, 1.0, 2, 0.0)
     assert model.probability(good) > 0.9 and model.probability(bad) < 0.2
+    # Other poses that explain the view as well make the same pose less trusted.
+    tied = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2, 0.2, 0.5, 0.0, 0.5, 3, 0.0)
+    assert model.probability(tied) < model.probability(good)
 
 
 def test_a_pose_given_the_depth_frame_is_judged_by_the_model_that_reads_the_scene(drill):

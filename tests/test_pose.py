@@ -56,7 +56,6 @@ def test_refinement_improves_the_fit(drill):
         "score_poses",
         "refine_hypotheses",
         "confidence",
-        "alternatives",
         "total",
     }
     assert len(fine.candidates) == 16 and fine.view in fine.candidates
@@ -128,6 +127,8 @@ def test_a_view_that_cannot_tell_a_pose_from_its_turn_offers_the_turn_as_an_alte
         assert any(right(T, truth) for T in found) and any(right(T, truth @ half_turn) for T in found), seed
         margins = [a.margin for a in pose.alternatives]
         assert margins == sorted(margins) and all(m <= edgepose.EstimateSettings().alternative_within for m in margins)
+        # The confidence reads them: how many, and how close the best comes.
+        assert pose.evidence["alternatives"] == len(margins) and pose.evidence["alternative_margin"] == margins[0]
         for i, T in enumerate(found):  # distinct from the pose and from each other
             assert all(pose_errors(points, T, other, d, symmetric=False).add >= 0.1 * d for other in found[i + 1 :]), (
                 seed
@@ -137,6 +138,8 @@ def test_a_view_that_cannot_tell_a_pose_from_its_turn_offers_the_turn_as_an_alte
         pose = edgepose.estimate(render_view(mesh, T_cam_obj=truth, seed=seed).cloud, codebook)
         assert right(pose.matrix, truth), seed
         assert not any(right(a.matrix, truth @ half_turn) for a in pose.alternatives), seed
+        if not pose.alternatives:
+            assert pose.evidence["alternatives"] == 0 and pose.evidence["alternative_margin"] == 1.0
     none = edgepose.estimate(
         render_view(mesh, T_cam_obj=looking_at(-1.0, 0), seed=0).cloud,
         codebook,

@@ -160,3 +160,19 @@ def test_given_the_depth_frame_the_table_under_a_tracked_object_is_left_out(dril
     assert modes[True] == ["initialised"] + ["tracked"] * 7, modes
     assert modes[False].count("reinitialised") >= 3, modes
     assert explained[True] > explained[False] + 0.03, explained
+
+
+def test_a_tracked_frame_offers_no_alternatives_from_an_earlier_frame():
+    # Seen from below, the tabbed box's first estimate comes with its half
+    # turn as an alternative: a pose of that frame, not of the next one.
+    from test_pose import looking_at, tabbed_box
+
+    mesh = tabbed_box()
+    tracker = edgepose.Tracker(edgepose.build_codebook(mesh))
+    T = looking_at(-1.0, 0)
+    first = tracker.update(render_view(mesh, T_cam_obj=T, seed=0).cloud)
+    assert first.mode == "initialised" and first.alternatives
+    pose = tracker.update(render_view(mesh, T_cam_obj=turned(T, 2.0, shift=(0.003, 0.0, 0.0)), seed=1).cloud)
+    assert pose.mode == "tracked" and pose.alternatives == ()
+    # The confidence still reads the doubt the estimate that started the track had.
+    assert pose.evidence["alternatives"] == first.evidence["alternatives"]

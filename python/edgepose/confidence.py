@@ -57,6 +57,10 @@ FEATURES: dict[str, str] = {
     "flip_fit_ratio": "fit of the pose over that of the flip margin's best turned rival (settled), on the same "
     "points: well below 1 when fine detail tells the pose from its turn, about 1 when nothing does; 0 when there "
     "is no rival",
+    "alternatives": "how many other poses explain the view nearly as well (Pose.alternatives, at most "
+    "settings.alternatives): the search's hypotheses and the flip margin's turned rival within "
+    "alternative_within of the pose's net, more than 0.1 d from it and from each other",
+    "alternative_margin": "net of the pose minus that of its best alternative; 1 when there is none",
     "scene_violation": "share of the model's camera-facing points that land off the observed silhouette in front of "
     "the frame's depth there (the model would hide background the camera saw), 0-1; only with the depth image",
 }
@@ -112,6 +116,8 @@ TERMS: dict[str, tuple[Callable[[float], float], ...]] = {
     "flip_margin": (_value, _clipped_margin, _no_rival),
     "rmse_ratio": (_value,),
     "flip_fit_ratio": (_value,),
+    "alternatives": (_value,),
+    "alternative_margin": (_value, _clipped_margin, _no_rival),
     "scene_violation": (_value, _log_share),
 }
 
@@ -307,6 +313,8 @@ def evidence_of(
     flip_margin: float,
     rmse_ratio: float,
     flip_fit_ratio: float,
+    alternatives: int,
+    alternative_margin: float,
     scene_violation: float = 0.0,
 ) -> dict[str, float]:
     """The evidence (:data:`FEATURES`) as a dict of floats."""
@@ -325,5 +333,7 @@ def evidence_of(
         "flip_margin": float(flip_margin),
         "rmse_ratio": float(rmse_ratio),
         "flip_fit_ratio": float(flip_fit_ratio),
+        "alternatives": float(alternatives),
+        "alternative_margin": float(alternative_margin),
         "scene_violation": float(scene_violation),
     }

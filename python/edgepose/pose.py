@@ -25,6 +25,7 @@ from edgepose.encoder import Encoder, default_encoder
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
 from edgepose.stages import (
     FlipMargin,
+    Hypotheses,
     PoseScores,
     Query,
     Refined,
@@ -99,9 +100,9 @@ class Pose:
     """Seconds per stage, named as the stage functions: prepare_query, retrieve,
     candidate_poses, score_poses, refine_hypotheses (pair_poses when the
     second search ran), then confidence (the
-    evidence and its probability), turned_pose (only when the flip margin
+    evidence, the alternatives among it, and its probability), turned_pose (only when the flip margin
     was low enough to try the pose's best turned rival: that and, if it
-    replaced the pose, its confidence), alternatives, and the total."""
+    replaced the pose, its confidence), and the total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
     points near the model)."""
@@ -129,7 +130,7 @@ class Pose:
     on a wrong pose costs more than looking again. The lowest threshold that
     let at most 5 % of the wrong poses through (:data:`edgepose.confidence.STRICT_WRONG_ACCEPTED`)
     on the fitting data's cross-validated stressed views, recorded with the
-    model that judged this pose (0.98 from a cloud alone and given the
+    model that judged this pose (0.97 from a cloud alone and given the
     frame, with the shipped networks); NaN without one."""
     evidence: dict = field(default_factory=dict)
     """The scoring terms ``confidence`` is computed from, by name
@@ -145,8 +146,9 @@ class Pose:
     truth is often among them (a banana end for end, a box whose telling
     side is hidden): look again from where they differ. They come from
     the search's coarse ICP, not the final polish (a few millimetres
-    coarser). At most ``settings.alternatives``; none for a tracked frame
-    or an unrefined pose (:func:`edgepose.stages.alternatives`)."""
+    coarser). How many there are and how close the best comes are
+    evidence of ``confidence``. At most ``settings.alternatives``; none
+    for a tracked frame or an unrefined pose (:func:`edgepose.stages.alternatives`)."""
     mode: str = "estimated"
     """How the pose was obtained: ``estimated`` (by :func:`estimate`), or by
     a :class:`edgepose.Tracker`: ``tracked`` (refined from the last frame),
@@ -292,11 +294,18 @@ def pose_from_query(
     judge = encoder.judge(with_scene=query.scene is not None)
 
     def judged(
-        found: Candidates, result: Refined, loose: PoseScores, searches: int, flips: FlipMargin | None = None
-    ) -> tuple[dict, float, FlipMargin]:
-        """The evidence, confidence (NaN without a confidence model) and flip
-        margin of ``result``, a search's pose from the candidates ``found``;
-        ``flips``: that margin when already known (a second search kept the first pose)."""
+        found: Candidates,
+        result: Refined,
+        searched: Refined,
+        loose: PoseScores,
+        searches: int,
+        flips: FlipMargin | None = None,
+    ) -> tuple[dict, float, FlipMargin, Hypotheses]:
+        """The evidence, confidence (NaN without a confidence model), flip
+        margin and alternatives of ``result``, a search's pose from the
+        candidates ``found`` (``searched``: the last search's pick, whose
+        hypotheses the alternatives come from); ``flips``: that margin when
+        already known (a second search kept the first pose)."""
         tight = (
             result.scores
             if result.refined
@@ -309,6 +318,7 @@ def pose_from_query(
                 else flip_rival(query, codebook, result.R, result.t, settings)
             )
             flips = flip_margin(tight, rival)
+        others = alternatives(query, codebook, result, searched.hypotheses, flips.rival, settings)
         evidence = evidence_of(
             inlier_fraction=tight.inlier_fraction[0],
             loose_inlier_fraction=loose.inlier_fraction[0],
@@ -324,9 +334,11 @@ def pose_from_query(
             flip_margin=flips.margin,
             flip_fit_ratio=float(tight.fit[0] / max(flips.rival.fits[0], 1e-12)) if len(flips.rival.fits) else 0.0,
             rmse_ratio=result.rmse_ratio,
+            alternatives=len(others.net),
+            alternative_margin=float(tight.net[0] - others.net[0]) if len(others.net) else 1.0,
             scene_violation=loose.scene_violation[0],
         )
-        return evidence, judge.probability(evidence) if judge else float("nan"), flips
+        return evidence, judge.probability(evidence) if judge else float("nan"), flips, others
 
     icp_cache: dict = {}  # the second search reuses the first one's ICPs
     result = best_pose(query, codebook, found, refine, settings, icp_cache)
@@ -339,8 +351,9 @@ def pose_from_query(
     laps("refine_hypotheses")
     evidence: dict[str, float] | None = None
     flips: FlipMargin | None = None
+    others: Hypotheses | None = None
     if not retry:
-        evidence, confidence, flips = judged(found, result, loose, searches)
+        evidence, confidence, flips, others = judged(found, result, searched, loose, searches)
         laps("confidence")
         retry = may_retry and confidence < settings.retry_below_confidence
     if retry:
@@ -356,19 +369,17 @@ def pose_from_query(
         if explains_more(wider, result):
             result, loose, flips = wider, loose_scores(query, codebook, wider, settings), None
         laps("refine_hypotheses")
-        evidence, confidence, flips = judged(found, result, loose, searches, flips)
+        evidence, confidence, flips, others = judged(found, result, searched, loose, searches, flips)
         laps("confidence")
-    assert evidence is not None and flips is not None  # judged once or twice above
+    assert evidence is not None and flips is not None and others is not None  # judged once or twice above
     if flips.margin < settings.turn_check_below:
         # The view may show the object turned onto itself: its best turned
         # rival, refined, replaces the pose if it explains the view better.
         turned = turned_pose(query, codebook, result, flips, settings)
         if turned is not None:
             result, loose = turned, loose_scores(query, codebook, turned, settings)
-            evidence, confidence, flips = judged(found, result, loose, searches)
+            evidence, confidence, flips, others = judged(found, result, searched, loose, searches)
         laps("turned_pose")
-    others = alternatives(query, codebook, result, searched.hypotheses, flips.rival, settings)
-    laps("alternatives")
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model

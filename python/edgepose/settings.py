@@ -219,7 +219,13 @@ class EstimateSettings:
     view nearly as well (0: none looked for) ..."""
     alternative_within: float = 0.05
     """... within this much of the pose's share of explained points net of
-    violations (inlier fraction minus free-space and scene violations)."""
+    violations (inlier fraction minus free-space and scene violations).
+    Their count and the best one's margin are evidence of
+    ``Pose.confidence``, whose model was fitted with these two values.
+    On the six tuning parts (20 views at seven levels, seeds 777000+) the
+    truth was among them for 11 of 34 wrong poses at 0.03 and 0.05 alike
+    and 12 at 0.1, where 21–31 % of the right occluded poses came with
+    alternatives instead of 9–18 %; 0.05 is ``hypothesis_free_space_margin``."""
     coarse_icp_on_two_cores: bool = True
     """Split the coarse ICPs of a search's new hypotheses, when there are
     2 or 3 (the first search's; the second search's starts not already

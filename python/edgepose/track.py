@@ -208,6 +208,8 @@ class Tracker:
             flip_margin=last.evidence.get("flip_margin", 1.0),
             rmse_ratio=last.evidence.get("rmse_ratio", 0.0),
             flip_fit_ratio=last.evidence.get("flip_fit_ratio", 0.0),
+            alternatives=int(last.evidence.get("alternatives", 0.0)),
+            alternative_margin=last.evidence.get("alternative_margin", 1.0),
             scene_violation=scores.scene_violation[0],
         )
         judge = self.encoder.judge(with_scene=scene is not None)
@@ -227,6 +229,7 @@ class Tracker:
             confidence=confidence,
             strict_threshold=judge.strict_threshold if judge else float("nan"),
             evidence=evidence,
+            alternatives=(),
             mode="tracked",
         )
 
