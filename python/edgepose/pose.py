@@ -318,7 +318,7 @@ def pose_from_query(
                 else flip_rival(query, codebook, result.R, result.t, settings)
             )
             flips = flip_margin(tight, rival)
-        others = alternatives(query, codebook, result, searched.hypotheses, flips.rival, settings)
+        others = alternatives(codebook, result, searched.hypotheses, flips.rival, settings)
         evidence = evidence_of(
             inlier_fraction=tight.inlier_fraction[0],
             loose_inlier_fraction=loose.inlier_fraction[0],

@@ -370,7 +370,6 @@ def turned_pose(
 
 
 def alternatives(
-    query: Query,
     codebook: Codebook,
     result: Refined,
     hypotheses: Hypotheses | None,
