@@ -41,14 +41,7 @@ from edgepose.stages import (
     score_poses,
     turned_pose,
 )
-from edgepose.symmetry import NO_SYMMETRY, Symmetry
-
-
-def transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(4, 4) float64 ``T_cam_obj`` of rotation ``R`` and translation ``t`` (metres)."""
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
+from edgepose.symmetry import NO_SYMMETRY, Symmetry, transform_from
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +63,7 @@ class Alternative:
     @property
     def matrix(self) -> np.ndarray:
         """(4, 4) float64 ``T_cam_obj``."""
-        return transform(self.R, self.t)
+        return transform_from(self.R, self.t)
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,7 +157,7 @@ class Pose:
     @property
     def matrix(self) -> np.ndarray:
         """(4, 4) float64 ``T_cam_obj``."""
-        return transform(self.R, self.t)
+        return transform_from(self.R, self.t)
 
 
 def estimate(

@@ -409,6 +409,8 @@ def distinct_poses(
     """Up to ``count`` indices of poses (model frame → camera), taken in
     ``order`` where ``allowed``, each more than ``RIVAL_DISTANCE`` × d from
     pose 0 and from those taken before."""
+    if count == 0 or not allowed[1:].any():  # only pose 0 itself may qualify: no distances needed
+        return []
     apart = allowed & (pose_distances(codebook, rotations, translations, 0) > RIVAL_DISTANCE * codebook.model.diameter)
     taken: list[int] = []
     for i in order:

@@ -226,7 +226,7 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
         good = fits(icp.rotations, icp.translations)
         for probe, R_i, t_i, ok in zip(np.flatnonzero(near), icp.rotations, icp.translations, good):
             if ok:
-                turns[int(probe)] = _transform_from(R_i, t_i)
+                turns[int(probe)] = transform_from(R_i, t_i)
     per_axis = len(probes) // len(axes)
 
     continuous: list[tuple[np.ndarray, np.ndarray]] = []
@@ -308,7 +308,7 @@ def _near_turns(
     for i in np.argsort(mean, kind="stable"):
         if mean[i] > limit or len(kept) == NEAR_MAX_TURNS:
             break
-        T = _transform_from(R_c[i], t_c[i])
+        T = transform_from(R_c[i], t_c[i])
         if not all(_apart(T[:3, :3], G[:3, :3], NEAR_MIN_ANGLE_DEG) for G in known + kept):
             continue
         # About a continuous axis, or across it when the object has a flip: a symmetry.
@@ -357,7 +357,7 @@ def _shifted(turns: list[np.ndarray] | np.ndarray, offset: np.ndarray) -> np.nda
     """(K, 4, 4) the 4 × 4 ``turns`` of points ``p`` as turns of ``p + offset``
     (metres): model frame -> object frame with the model centre as ``offset``,
     back with its negative."""
-    shift, unshift = _transform_from(np.eye(3), offset), _transform_from(np.eye(3), -offset)
+    shift, unshift = transform_from(np.eye(3), offset), transform_from(np.eye(3), -offset)
     return np.stack([shift @ T @ unshift for T in turns]) if len(turns) else np.zeros((0, 4, 4))
 
 
@@ -405,7 +405,8 @@ def _point_on_axis(T: np.ndarray, near: np.ndarray) -> np.ndarray:
     return near + q
 
 
-def _transform_from(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def transform_from(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(4, 4) float64 transform of rotation ``R`` and translation ``t``."""
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T
@@ -414,4 +415,4 @@ def _transform_from(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 def _turn_about(axis: np.ndarray, point: np.ndarray, angle: float) -> np.ndarray:
     """4 × 4 turn by ``angle`` (radians) about the line through ``point`` along ``axis``."""
     R = rotation_about(axis, angle)
-    return _transform_from(R, point - R @ point)
+    return transform_from(R, point - R @ point)

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from edgepose.errors import EdgePoseError
-from edgepose.symmetry import Symmetry
+from edgepose.symmetry import Symmetry, transform_from
 
 BOP_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
@@ -197,9 +197,7 @@ class BopGt:
     @property
     def matrix(self) -> np.ndarray:
         """(4, 4) float64 ``T_cam_obj``."""
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = self.R, self.t
-        return T
+        return transform_from(self.R, self.t)
 
 
 @dataclass(frozen=True, eq=False)
