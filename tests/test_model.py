@@ -6,6 +6,7 @@ import edgepose
 import numpy as np
 import pytest
 import trimesh
+from edgepose.io import read_cloud
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import pdist
 
@@ -108,3 +109,17 @@ def test_bad_models_raise_named_errors(tmp_path):
     # Every one of these is also a ValueError, and an EdgePoseError.
     assert issubclass(edgepose.MeshLoadError, ValueError)
     assert issubclass(edgepose.InvalidModelError, edgepose.EdgePoseError)
+
+
+def test_a_mesh_naming_a_missing_texture_loads_without_a_warning(tmp_path, caplog):
+    # BOP's models name a texture image that depth-only datasets leave out.
+    box = trimesh.creation.box(extents=(0.1, 0.08, 0.06))
+    text = box.export(file_type="ply", encoding="ascii").decode()
+    text = text.replace("end_header", "comment TextureFile obj_000001.png\nend_header", 1)
+    path = tmp_path / "obj_000001.ply"
+    path.write_text(text)
+    with caplog.at_level("DEBUG", logger="trimesh"):
+        mesh = edgepose.read_mesh(path)
+        points = read_cloud(path)
+    assert len(mesh.faces) == 12 and points.shape == (8, 3)
+    assert not [r for r in caplog.records if r.levelname in ("WARNING", "ERROR")]

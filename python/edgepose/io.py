@@ -55,7 +55,7 @@ def _read_ply_points(path: Path) -> np.ndarray:
     import trimesh
 
     try:
-        loaded = trimesh.load(path, process=False)
+        loaded = trimesh.load(path, process=False, skip_materials=True)
     except Exception as e:  # trimesh raises many types for malformed files
         raise FileFormatError(f"{path}: not a readable PLY file ({e})") from None
     vertices = getattr(loaded, "vertices", None)

@@ -210,7 +210,9 @@ def read_mesh(path: str | os.PathLike, scale: float | None = 1.0) -> trimesh.Tri
     if not path.is_file():
         raise MeshLoadError(f"{path}: no such file")
     try:
-        scene = trimesh.load_scene(path)
+        # A depth method needs no texture: skip_materials keeps a missing
+        # texture image (BOP's models name one) from being looked for at all.
+        scene = trimesh.load_scene(path, skip_materials=True)
         parts = []
         for node in scene.graph.nodes_geometry:
             transform, geometry_name = scene.graph[node]
