@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 export VIRTUAL_ENV := $(abspath $(VENV))
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: demo test lint install build bench wheel train codebooks clean
+.PHONY: demo test lint install build docs bench wheel train codebooks clean
 
 $(BIN)/maturin:
 	$(PYTHON) -m venv $(VENV)
@@ -40,6 +40,15 @@ demo: install
 test: build
 	cargo test --workspace
 	$(BIN)/python -m pytest -q
+
+# The documentation site (mkdocs-material; the API reference by mkdocstrings,
+# which reads the sources statically, so the compiled core is not needed) into
+# site/, strict: a broken link or an unreadable docstring fails the build. The
+# pins are the `docs` extra's in pyproject.toml: change both together.
+DOCS_PACKAGES := "mkdocs==1.6.1" "mkdocs-material==9.8.2" "mkdocstrings[python]==1.0.8" "mkdocstrings-python==2.0.11"
+docs: $(BIN)/maturin
+	$(BIN)/python -m pip install --quiet $(DOCS_PACKAGES)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
 
 # The shipped example codebooks (codebooks/ links to python/edgepose/codebooks/,
 # so they install with the package); rebuild them after the encoder changes.
