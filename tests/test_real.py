@@ -1,0 +1,61 @@
+"""The real-data benchmark's evaluation (edgepose.eval.real) on real
+YCB-Video frames: depth-fair correctness, grown masks, BOP rows and clips."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import SHARED_DATA
+from edgepose.eval.bop import BopDataset
+from edgepose.eval.bop_run import bop_codebooks
+from edgepose.eval.real import bop_rows, estimate_targets, real_objects, track_clips
+
+CAN = 1  # master_chef_can: shape-symmetric, judged by ADD-S
+
+
+@pytest.fixture(scope="module")
+def real(tmp_path_factory):
+    root = SHARED_DATA / "ycbv_real"
+    if not root.is_dir():
+        pytest.skip(f"real YCB-Video frames not found at {root}")
+    dataset = BopDataset(root)
+    targets = [t for t in dataset.targets() if t.obj_id == CAN][:3]
+    books = bop_codebooks(dataset, [CAN], tmp_path_factory.mktemp("codebooks"))
+    return dataset, targets, books
+
+
+def test_real_targets_are_estimated_right_from_annotated_and_grown_masks(real):
+    dataset, targets, books = real
+    assert real_objects(books)[CAN].symmetric  # a can: depth cannot tell its turn, so ADD-S
+    for grow, with_frame in ((0, False), (4, True)):
+        results = estimate_targets(dataset, targets, books, grow, with_frame=with_frame)
+        assert [(r.scene_id, r.im_id, r.obj_id) for r in results] == [(t.scene_id, t.im_id, CAN) for t in targets]
+        assert all(r.grow_px == grow and r.pose is not None and not r.error for r in results)
+        assert all(r.correct for r in results), [r.errors.add_or_s for r in results]
+        assert all(r.points > 1000 for r in results)  # the can is ~10 cm across at ~1 m: thousands of pixels
+    # A grown mask takes in more pixels than the annotated one.
+    exact = estimate_targets(dataset, targets[:1], books, 0, with_frame=False)[0]
+    grown = estimate_targets(dataset, targets[:1], books, 8, with_frame=False)[0]
+    assert grown.points > exact.points
+
+
+def test_real_results_become_bop_rows_with_one_time_per_image(real):
+    dataset, targets, books = real
+    results = estimate_targets(dataset, targets, books, 0, with_frame=False)
+    rows = bop_rows(results)
+    assert len(rows) == len(results)
+    for row, r in zip(rows, results):
+        np.testing.assert_allclose(row.t, r.pose.t)
+        assert row.time == pytest.approx(r.seconds)  # one target an image here
+        assert row.score == r.pose.confidence
+
+
+def test_a_real_clip_is_tracked_after_its_first_frame(real):
+    dataset, _, books = real
+    run = track_clips(dataset, books, scenes=[1], images=4)
+    can = [f for f in run.frames if f.obj_id == CAN]
+    assert [f.mode for f in can][0] == "initialised" and len(can) == 4
+    assert sum(f.mode == "tracked" for f in can) >= 2
+    assert all(f.correct for f in can)
+    assert len(run.tracker_image_seconds) == len(run.many_image_seconds) == 4
+    assert all(run.many_correct)
