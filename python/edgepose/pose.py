@@ -31,6 +31,7 @@ from edgepose.stages import (
     Refined,
     alternatives,
     candidate_poses,
+    distinct_poses,
     flip_margin,
     flip_rival,
     nearest_views,
@@ -42,6 +43,7 @@ from edgepose.stages import (
     turned_pose,
 )
 from edgepose.symmetry import NO_SYMMETRY, Symmetry, transform_from
+from edgepose.unseen_turn import UnseenTurn, unseen_turn
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,6 +144,13 @@ class Pose:
     coarser). How many there are and how close the best comes are
     evidence of ``confidence``. At most ``settings.alternatives``; none
     for a tracked frame or an unrefined pose (:func:`edgepose.stages.alternatives`)."""
+    unseen_turn: UnseenTurn | None = None
+    """When the view leaves open a turn about the object's near-symmetry
+    axis (a mug with its handle hidden): that axis and the turns that
+    explain the view nearly as well; None when the view fixes the turn or
+    the object has no such axis. A spread of those turns is among
+    ``alternatives``, and ``confidence`` is scaled by the share of them
+    this pose stands for (``evidence["unseen_turn_share"]``)."""
     mode: str = "estimated"
     """How the pose was obtained: ``estimated`` (by :func:`estimate`), or by
     a :class:`edgepose.Tracker`: ``tracked`` (refined from the last frame),
@@ -373,6 +382,10 @@ def pose_from_query(
             result, loose = turned, loose_scores(query, codebook, turned, settings)
             evidence, confidence, flips, others = judged(found, result, searched, loose, searches)
         laps("turned_pose")
+    turn, others, confidence = view_left_open(query, codebook, result, others, confidence, settings)
+    if turn is not None:
+        evidence["unseen_turn_share"] = turn.share
+    laps("unseen_turn")
     timings = laps.timings
     timings["total"] = time.perf_counter() - laps.start
     model = codebook.model
@@ -399,7 +412,46 @@ def pose_from_query(
         alternatives=tuple(
             Alternative(R, t - R @ model.centre, float(result.scores.net[0] - net)) for R, t, net in zip(*others)
         ),
+        unseen_turn=turn,
     )
+
+
+def view_left_open(
+    query: Query,
+    codebook: Codebook,
+    result: Refined,
+    others: Hypotheses,
+    confidence: float,
+    settings: EstimateSettings,
+) -> tuple[UnseenTurn | None, Hypotheses, float]:
+    """The turns about the object's near-symmetry axis that the view leaves
+    open (:func:`edgepose.unseen_turn.unseen_turn`), if any, for a refined
+    pose: their spread joins the alternatives (those not within 0.1 ×
+    diameter of one already there) and the confidence is scaled by the
+    share of them the pose stands for."""
+    if not result.refined:
+        return None, others, confidence
+    observed = query.sample(settings.hypothesis_points, settings.subsample_seed)
+    d = codebook.model.diameter
+
+    def net_of(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        inlier = settings.hypothesis_inlier_distance * d
+        return score_poses(query, codebook, observed, rotations, translations, inlier, 0.0, settings).net
+
+    found = unseen_turn(codebook, net_of, result.R, result.t, settings)
+    if found is None:
+        return None, others, confidence
+    turn, R, t, net = found
+    pool = Hypotheses(
+        np.concatenate([result.R[None], others.rotations, R]),
+        np.concatenate([result.t[None], others.translations, t]),
+        np.concatenate([result.scores.net[:1], others.net, net]),
+    )
+    keep = len(others.net) + len(net)
+    order = np.arange(len(pool.net))  # the search's alternatives first, then the spread
+    picked = distinct_poses(codebook, pool.rotations, pool.translations, order, np.ones(len(order), bool), keep)
+    merged = Hypotheses(pool.rotations[picked], pool.translations[picked], pool.net[picked])
+    return turn, merged, confidence * turn.share
 
 
 class Candidates(NamedTuple):

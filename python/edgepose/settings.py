@@ -226,6 +226,12 @@ class EstimateSettings:
     truth was among them for 11 of 34 wrong poses at 0.03 and 0.05 alike
     and 12 at 0.1, where 21–31 % of the right occluded poses came with
     alternatives instead of 9–18 %; 0.05 is ``hypothesis_free_space_margin``."""
+    unseen_turn_alternatives: int = 8
+    """When the object has a near-symmetry axis (a mug's body) and the view
+    leaves the turn about it open (the handle unseen): at most this many
+    of those turns join ``Pose.alternatives``, spread over what the view
+    allows (-1: the turn is not looked for; :mod:`edgepose.unseen_turn`).
+    Enough to span a half circle at the 0.1 × diameter spacing of a mug."""
     coarse_icp_on_two_cores: bool = True
     """Split the coarse ICPs of a search's new hypotheses, when there are
     2 or 3 (the first search's; the second search's starts not already

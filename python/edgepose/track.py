@@ -214,6 +214,9 @@ class Tracker:
         )
         judge = self.encoder.judge(with_scene=scene is not None)
         confidence = judge.probability(evidence) if judge else float("nan")
+        if last.unseen_turn is not None:  # tracking cannot tell the turn the view left open either
+            evidence["unseen_turn_share"] = last.unseen_turn.share
+            confidence *= last.unseen_turn.share
         elapsed = time.perf_counter() - t0
         return dataclasses.replace(
             last,

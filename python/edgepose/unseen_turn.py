@@ -1,0 +1,153 @@
+"""View-dependent ambiguity: turns about a near-symmetry axis that the view
+cannot rule out.
+
+A mug whose handle is hidden behind it is, from that view, a cylinder: every
+turn about its axis that keeps the handle out of sight explains the depth
+as well as the pose does. The object has no symmetry (the handle breaks
+it), so :mod:`edgepose.symmetry` cannot forgive these turns; but its near
+turns (:attr:`edgepose.Symmetry.near`) reveal the axis: three or more near
+turns about one axis mean most of the surface is a body of revolution
+about it. :func:`unseen_turn` tries the pose turned about that axis on a
+grid of angles, keeps the turns that explain the observed points nearly as
+well as the pose (inlier share net of free-space and scene violations,
+within ``settings.alternative_within``) and reports them: which of them
+are too far from the pose to be right if it is (ADD > 0.1 × diameter), a
+spread of those as alternatives, and the share of the explaining turns
+that the pose stands for. Views that show the handle rule out all but the
+turns near the pose, and nothing changes.
+
+Frames: axes and points in the object (mesh) frame, metres; poses model
+frame → camera where they come from the search (model = mesh − centre).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from edgepose.codebook import Codebook
+from edgepose.settings import EstimateSettings
+from edgepose.stages import pose_distances
+from edgepose.symmetry import Symmetry
+from edgepose.views import rotation_about, rotation_axis
+
+#: Near turns about one axis (their axes within this many degrees) that
+#: make it a near-symmetry axis: two could be a 3-fold's pair; a body of
+#: revolution with one feature has turns at many angles.
+MIN_TURNS_ABOUT_AXIS = 3
+SAME_AXIS_DEG = 5.0
+#: Turns tried about the axis, degrees apart (24 a circle: the arc a 0.1 ×
+#: diameter ADD allows a mug is about ±20°, so each is seen by 2–3 steps).
+STEP_DEG = 15.0
+#: A turn is "right if the pose is" when its ADD from the pose is below
+#: this fraction of the diameter (the correctness criterion).
+RIGHT_WITHIN = 0.1
+
+
+@dataclass(frozen=True, eq=False)
+class NearAxis:
+    """An axis most of the object's surface turns onto itself about (object frame, metres)."""
+
+    axis: np.ndarray
+    """(3,) unit direction."""
+    point: np.ndarray
+    """(3,) a point on it."""
+
+
+@dataclass(frozen=True, eq=False)
+class UnseenTurn:
+    """Turns about the object's near-symmetry axis that the view cannot rule
+    out (:attr:`edgepose.Pose.unseen_turn`): "the mug is here, its handle is
+    unseen". Object frame, metres, degrees."""
+
+    axis: np.ndarray
+    """(3,) unit direction of the axis, object frame."""
+    point: np.ndarray
+    """(3,) a point on the axis, object frame, metres."""
+    angles_deg: np.ndarray
+    """(A,) the turns of the pose about ``axis`` (right-handed, degrees in
+    (-180, 180], 0 the pose itself) that explain the view nearly as well."""
+    share: float
+    """Of those turns, the share within ADD < 0.1 × diameter of the pose:
+    the chance that the pose is the right one of them when the view cannot
+    choose (the confidence is scaled by it)."""
+
+
+def near_axis(symmetry: Symmetry) -> NearAxis | None:
+    """The axis of at least :data:`MIN_TURNS_ABOUT_AXIS` of the object's
+    near turns, or None. Its direction is their mean axis, its point the
+    least-squares fixed point of the turns."""
+    near = np.asarray(symmetry.near, dtype=np.float64).reshape(-1, 4, 4)
+    if len(near) < MIN_TURNS_ABOUT_AXIS or len(symmetry.continuous):
+        return None
+    axes = np.array([rotation_axis(T[:3, :3]) for T in near])
+    for reference in axes:
+        aligned = axes * np.sign(axes @ reference)[:, None]
+        same = np.degrees(np.arccos(np.clip(aligned @ reference, -1.0, 1.0))) < SAME_AXIS_DEG
+        if same.sum() >= MIN_TURNS_ABOUT_AXIS:
+            axis = aligned[same].mean(axis=0)
+            axis /= np.linalg.norm(axis)
+            turns = near[same]
+            # Each turn fixes its axis: (I - R) p = t, stacked; the minimum-norm
+            # solution picks the point on the axis nearest to the origin.
+            A = np.concatenate([np.eye(3) - T[:3, :3] for T in turns])
+            b = np.concatenate([T[:3, 3] for T in turns])
+            point = np.linalg.lstsq(A, b, rcond=None)[0]
+            point -= axis * (point @ axis)
+            return NearAxis(axis, point)
+    return None
+
+
+def turned_about(R: np.ndarray, t: np.ndarray, axis: NearAxis, centre: np.ndarray, angles_deg: np.ndarray):
+    """Pose ``(R, t)`` (model frame → camera) turned about ``axis`` by each
+    angle: (A, 3, 3) rotations and (A, 3) translations, model frame → camera."""
+    point = axis.point - centre  # the axis point in the model frame
+    turns = np.array([rotation_about(axis.axis, np.radians(a)) for a in angles_deg])
+    rotations = R @ turns
+    translations = t + R @ point - rotations @ point
+    return rotations, translations
+
+
+def unseen_turn(
+    codebook: Codebook,
+    net_of,
+    R: np.ndarray,
+    t: np.ndarray,
+    settings: EstimateSettings,
+) -> tuple[UnseenTurn, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The turns of pose ``(R, t)`` (model frame → camera) about the
+    object's near-symmetry axis that explain the view within
+    ``settings.alternative_within`` of the pose (``net_of(rotations,
+    translations)``: each pose's inlier share net of violations on the
+    hypotheses' observed points), when some of them are more than
+    0.1 × diameter from the pose; with the turned poses to offer as
+    alternatives (rotations, translations, nets: a spread of them, each
+    more than 0.1 × diameter from the pose and from the one before, best
+    first). None when the object has no such axis or the view fixes the turn."""
+    axis = near_axis(codebook.symmetry)
+    if axis is None or settings.unseen_turn_alternatives < 0:
+        return None
+    angles = np.arange(0.0, 360.0, STEP_DEG)
+    angles = np.where(angles > 180.0, angles - 360.0, angles)
+    rotations, translations = turned_about(R, t, axis, codebook.model.centre, angles)
+    net = net_of(rotations, translations)
+    explains = net >= net[0] - settings.alternative_within
+    limit = RIGHT_WITHIN * codebook.model.diameter
+    # ADD from the pose (ADD-S for a symmetric object: a turn onto a symmetry is the pose).
+    near = pose_distances(codebook, rotations, translations, 0) < limit
+    if not (explains & ~near).any():
+        return None
+    share = float((explains & near).sum() / explains.sum())
+    found = UnseenTurn(axis.axis, axis.point, angles[explains], share)
+    # A spread: sweeping away from the pose both ways, a turn joins when it is
+    # more than 0.1 × diameter from the last one taken (or from the pose).
+    picked: list[int] = []
+    for direction in (1.0, -1.0):
+        apart = ~near
+        for i in np.argsort(direction * angles):
+            if direction * angles[i] > 0 and explains[i] and apart[i]:
+                picked.append(int(i))
+                apart = pose_distances(codebook, rotations, translations, int(i)) >= limit
+    picked = sorted(set(picked), key=lambda i: -net[i])[: settings.unseen_turn_alternatives]
+    return found, rotations[picked], translations[picked], net[picked]
