@@ -31,7 +31,6 @@ from edgepose.stages import (
     Refined,
     alternatives,
     candidate_poses,
-    distinct_poses,
     flip_margin,
     flip_rival,
     nearest_views,
@@ -43,7 +42,7 @@ from edgepose.stages import (
     turned_pose,
 )
 from edgepose.symmetry import NO_SYMMETRY, Symmetry, transform_from
-from edgepose.unseen_turn import UnseenTurn, unseen_turn
+from edgepose.unseen_turn import UnseenTurn, view_left_open
 
 
 @dataclass(frozen=True, eq=False)
@@ -414,44 +413,6 @@ def pose_from_query(
         ),
         unseen_turn=turn,
     )
-
-
-def view_left_open(
-    query: Query,
-    codebook: Codebook,
-    result: Refined,
-    others: Hypotheses,
-    confidence: float,
-    settings: EstimateSettings,
-) -> tuple[UnseenTurn | None, Hypotheses, float]:
-    """The turns about the object's near-symmetry axis that the view leaves
-    open (:func:`edgepose.unseen_turn.unseen_turn`), if any, for a refined
-    pose: their spread joins the alternatives (those not within 0.1 ×
-    diameter of one already there) and the confidence is scaled by the
-    share of them the pose stands for."""
-    if not result.refined:
-        return None, others, confidence
-    observed = query.sample(settings.hypothesis_points, settings.subsample_seed)
-    d = codebook.model.diameter
-
-    def net_of(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-        inlier = settings.hypothesis_inlier_distance * d
-        return score_poses(query, codebook, observed, rotations, translations, inlier, 0.0, settings).net
-
-    found = unseen_turn(codebook, net_of, result.R, result.t, settings)
-    if found is None:
-        return None, others, confidence
-    turn, R, t, net = found
-    pool = Hypotheses(
-        np.concatenate([result.R[None], others.rotations, R]),
-        np.concatenate([result.t[None], others.translations, t]),
-        np.concatenate([result.scores.net[:1], others.net, net]),
-    )
-    keep = len(others.net) + len(net)
-    order = np.arange(len(pool.net))  # the search's alternatives first, then the spread
-    picked = distinct_poses(codebook, pool.rotations, pool.translations, order, np.ones(len(order), bool), keep)
-    merged = Hypotheses(pool.rotations[picked], pool.translations[picked], pool.net[picked])
-    return turn, merged, confidence * turn.share
 
 
 class Candidates(NamedTuple):

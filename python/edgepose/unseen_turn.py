@@ -28,7 +28,7 @@ import numpy as np
 
 from edgepose.codebook import Codebook
 from edgepose.settings import EstimateSettings
-from edgepose.stages import pose_distances
+from edgepose.stages import Hypotheses, Query, Refined, distinct_poses, pose_distances, score_poses
 from edgepose.symmetry import Symmetry
 from edgepose.views import rotation_about, rotation_axis
 
@@ -40,6 +40,9 @@ SAME_AXIS_DEG = 5.0
 #: Turns tried about the axis, degrees apart (24 a circle: the arc a 0.1 ×
 #: diameter ADD allows a mug is about ±20°, so each is seen by 2–3 steps).
 STEP_DEG = 15.0
+#: The turns screened first, either way (degrees): beyond the 0.1 ×
+#: diameter of a mug-sized body, so a view leaving them open leaves the turn open.
+SCREEN_DEG = 2 * STEP_DEG
 #: A turn is "right if the pose is" when its ADD from the pose is below
 #: this fraction of the diameter (the correctness criterion).
 RIGHT_WITHIN = 0.1
@@ -124,9 +127,16 @@ def unseen_turn(
     0.1 × diameter from the pose; with the turned poses to offer as
     alternatives (rotations, translations, nets: a spread of them, each
     more than 0.1 × diameter from the pose and from the one before, best
-    first). None when the object has no such axis or the view fixes the turn."""
+    first). None when the object has no such axis or the view fixes the
+    turn (neither turn :data:`SCREEN_DEG` beside the pose explains it)."""
     axis = near_axis(codebook.symmetry)
     if axis is None or settings.unseen_turn_alternatives < 0:
+        return None
+    # A view that fixes the turn rules out the turns beside the pose: a
+    # cheap screen of those two spares most such views the full circle.
+    beside = np.array([0.0, SCREEN_DEG, -SCREEN_DEG])
+    screened = net_of(*turned_about(R, t, axis, codebook.model.centre, beside))
+    if not (screened[1:] >= screened[0] - settings.alternative_within).any():
         return None
     angles = np.arange(0.0, 360.0, STEP_DEG)
     angles = np.where(angles > 180.0, angles - 360.0, angles)
@@ -151,3 +161,41 @@ def unseen_turn(
                 apart = pose_distances(codebook, rotations, translations, int(i)) >= limit
     picked = sorted(set(picked), key=lambda i: -net[i])[: settings.unseen_turn_alternatives]
     return found, rotations[picked], translations[picked], net[picked]
+
+
+def view_left_open(
+    query: Query,
+    codebook: Codebook,
+    result: Refined,
+    others: Hypotheses,
+    confidence: float,
+    settings: EstimateSettings,
+) -> tuple[UnseenTurn | None, Hypotheses, float]:
+    """The turns about the object's near-symmetry axis that the view leaves
+    open (:func:`edgepose.unseen_turn.unseen_turn`), if any, for a refined
+    pose: their spread joins the alternatives (those not within 0.1 ×
+    diameter of one already there) and the confidence is scaled by the
+    share of them the pose stands for."""
+    if not result.refined:
+        return None, others, confidence
+    observed = query.sample(settings.hypothesis_points, settings.subsample_seed)
+    d = codebook.model.diameter
+
+    def net_of(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        inlier = settings.hypothesis_inlier_distance * d
+        return score_poses(query, codebook, observed, rotations, translations, inlier, 0.0, settings).net
+
+    found = unseen_turn(codebook, net_of, result.R, result.t, settings)
+    if found is None:
+        return None, others, confidence
+    turn, R, t, net = found
+    pool = Hypotheses(
+        np.concatenate([result.R[None], others.rotations, R]),
+        np.concatenate([result.t[None], others.translations, t]),
+        np.concatenate([result.scores.net[:1], others.net, net]),
+    )
+    keep = len(others.net) + len(net)
+    order = np.arange(len(pool.net))  # the search's alternatives first, then the spread
+    picked = distinct_poses(codebook, pool.rotations, pool.translations, order, np.ones(len(order), bool), keep)
+    merged = Hypotheses(pool.rotations[picked], pool.translations[picked], pool.net[picked])
+    return turn, merged, confidence * turn.share
