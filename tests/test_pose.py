@@ -13,7 +13,7 @@ import trimesh
 from edgepose.encoder import default_encoder
 from edgepose.eval import pose_errors, render_view
 from edgepose.model import read_mesh
-from edgepose.stages import prepare_query, retrieve
+from edgepose.stages import free_space_tolerance, prepare_query, retrieve
 
 
 def errors(pose, view, codebook):
@@ -537,3 +537,20 @@ def test_parallel_work_counts_the_cores_this_process_may_use():
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout.split()
     assert int(out[0]) == 1 and int(out[1]) >= 1
+
+
+def test_the_free_space_tolerance_grows_with_the_sensor_noise_at_the_object_depth(drill):
+    _, codebook = drill
+    d = codebook.model.diameter
+    settings = edgepose.EstimateSettings()
+    a, b, c = settings.depth_noise
+    near, far = (np.random.default_rng(0).normal(size=(500, 3)) * 0.03 + (0, 0, z) for z in (0.5, 1.5))
+    q_near = prepare_query(near, codebook, settings)
+    q_far = prepare_query(far, codebook, settings)
+    # Close by, the fraction of the diameter rules; far away, three noise stds.
+    assert free_space_tolerance(q_near, d, settings) == pytest.approx(settings.free_space_tolerance * d)
+    sigma_far = a + b * (q_far.median_depth - c) ** 2
+    assert free_space_tolerance(q_far, d, settings) == pytest.approx(3.0 * sigma_far)
+    assert 3.0 * sigma_far > settings.free_space_tolerance * d
+    quiet = settings.with_(free_space_noise_sigmas=0.0)
+    assert free_space_tolerance(q_far, d, quiet) == pytest.approx(settings.free_space_tolerance * d)

@@ -77,7 +77,16 @@ class EstimateSettings:
     2,100-view grid and the in-plane angle, so this is loose."""
     free_space_tolerance: float = 0.03
     """× d. A camera-facing model point this far in front of the observed
-    depth on its ray contradicts the view (free-space violation)."""
+    depth on its ray contradicts the view (free-space violation) ..."""
+    free_space_noise_sigmas: float = 3.0
+    """... or, when more, this many standard deviations of the sensor's
+    depth noise at the object's depth (``depth_noise``): a real sensor's
+    noise must not read as a contradiction (0: the fraction of d alone)."""
+    depth_noise: tuple[float, float, float] = (0.0012, 0.0019, 0.4)
+    """``(a, b, c)``: the sensor's depth-noise std at depth z is
+    ``a + b (z − c)²`` metres. The default is a structured-light camera's
+    (Kinect v1, Asus Xtion; Nguyen, Izadi and Lovell 2012); a quieter
+    sensor (a stereo or time-of-flight camera at short range) may lower it."""
     candidate_free_space_weight: float = 0.5
     """Weight of the free-space violation fraction against the normalised
     truncated fit (fit / inlier distance) when ranking candidates."""

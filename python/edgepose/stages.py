@@ -67,6 +67,11 @@ class Query:
             return _core.DepthGrid(self.points, self.spacing)
         return _core.DepthGrid(self.points, self.spacing, self.scene.depth, self.scene.camera, self.scene.radius)
 
+    @cached_property
+    def median_depth(self) -> float:
+        """Median z of ``points``, metres: the depth the sensor's noise is read at."""
+        return float(np.median(self.points[:, 2]))
+
     def sample(self, count: int, seed: int) -> np.ndarray:
         """:func:`subsample` of ``points`` (``count``, ``seed``), drawn once
         per query: the stages ask for the same samples several times."""
@@ -424,6 +429,17 @@ def distinct_poses(
     return taken
 
 
+def free_space_tolerance(query: Query, diameter: float, settings: EstimateSettings = DEFAULT_SETTINGS) -> float:
+    """How far (metres) a camera-facing model point must stand in front of
+    the observed depth to contradict the view: ``settings.free_space_tolerance``
+    × ``diameter``, or ``settings.free_space_noise_sigmas`` standard
+    deviations of the sensor's depth noise (``settings.depth_noise``) at
+    the query's median depth, whichever is larger."""
+    a, b, c = settings.depth_noise
+    noise = a + b * (query.median_depth - c) ** 2
+    return max(settings.free_space_tolerance * diameter, settings.free_space_noise_sigmas * noise)
+
+
 def score_poses(
     query: Query,
     codebook: Codebook,
@@ -443,7 +459,7 @@ def score_poses(
         np.ascontiguousarray(rotations),
         np.ascontiguousarray(translations),
         inlier_distance,
-        settings.free_space_tolerance * d,
+        free_space_tolerance(query, d, settings),
         settings.free_space_model_stride,
     )
     cost = fit / inlier_distance + free_space_weight * (violation + scene)
@@ -657,7 +673,7 @@ class RivalSearch:
             FLIP_ALIGN_ITERATIONS,
             settings.candidate_inlier_distance * d,
             settings.hypothesis_inlier_distance * d,
-            settings.free_space_tolerance * d,
+            free_space_tolerance(query, d, settings),
             settings.free_space_model_stride,
             RIVAL_DISTANCE * d,
             RIVAL_POINTS,
