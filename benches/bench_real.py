@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from edgepose.eval.baselines import Open3DBaseline
 from edgepose.eval.benchmark import load_object, timed_estimate
-from edgepose.eval.bop import BopDataset
+from edgepose.eval.bop import YCBV_OBJ_ID, BopDataset
 from edgepose.eval.bop_run import bop_codebooks
 from edgepose.eval.bop_score import score_bop
 from edgepose.eval.metrics import acceptance, auroc, calibration, pose_errors
@@ -41,29 +41,7 @@ DATA = REPO.parent / "shared" / "data" / "ycbv_real"
 YCB = REPO.parent / "shared" / "data" / "ycb"
 CACHE = REPO / "benches" / ".cache"
 #: YCB-Video object names by BOP id (for the tables).
-NAMES = {
-    1: "master_chef_can",
-    2: "cracker_box",
-    3: "sugar_box",
-    4: "tomato_soup_can",
-    5: "mustard_bottle",
-    6: "tuna_fish_can",
-    7: "pudding_box",
-    8: "gelatin_box",
-    9: "potted_meat_can",
-    10: "banana",
-    11: "pitcher_base",
-    12: "bleach_cleanser",
-    13: "bowl",
-    14: "mug",
-    15: "power_drill",
-    16: "wood_block",
-    17: "scissors",
-    18: "large_marker",
-    19: "large_clamp",
-    20: "extra_large_clamp",
-    21: "foam_brick",
-}
+NAMES = {obj_id: name for name, obj_id in YCBV_OBJ_ID.items()}
 
 
 def main() -> None:

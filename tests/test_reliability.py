@@ -348,3 +348,34 @@ def test_clean_cloud_draws_at_most_max_points_reproducibly_in_any_float_layout(d
     rows = {tuple(p) for p in cloud.astype(np.float32)}
     assert all(tuple(p) in rows for p in drawn) and len({tuple(p) for p in drawn}) == 256
     assert np.array_equal(clean_cloud(cloud, diameter, 10**6), cloud.astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    "wrong, kind",
+    [(None, "NoneType"), ("codebooks/power_drill.codebook", "str"), (np.zeros(3), "ndarray")],
+)
+def test_a_codebook_of_the_wrong_type_is_named_at_every_public_door(drill, wrong, kind):
+    mesh, codebook = drill
+    view = render_view(mesh, seed=5)
+    mask = view.mask
+    calls = {
+        "estimate": lambda: edgepose.estimate(view.cloud, wrong),
+        "estimate_many": lambda: edgepose.estimate_many(view.depth, view.camera.K, [(mask, wrong)], depth_scale=1.0),
+        "Tracker": lambda: edgepose.Tracker(wrong),
+    }
+    for door, call in calls.items():
+        with pytest.raises(edgepose.InvalidArgumentError, match="codebook must be an edgepose.Codebook") as caught:
+            call()
+        assert isinstance(caught.value, TypeError) and isinstance(caught.value, edgepose.EdgePoseError), door
+        assert kind in repr(type(wrong)) or repr(wrong)[:10] in str(caught.value), door
+
+
+def test_settings_and_frame_objects_of_the_wrong_type_are_named(drill):
+    mesh, codebook = drill
+    view = render_view(mesh, seed=5)
+    with pytest.raises(edgepose.InvalidArgumentError, match="settings must be an edgepose.EstimateSettings"):
+        edgepose.estimate(view.cloud, codebook, settings={"k": 8})
+    with pytest.raises(edgepose.InvalidArgumentError, match=r"objects\[0\] must be a \(mask, codebook\) pair"):
+        edgepose.estimate_many(view.depth, view.camera.K, [codebook], depth_scale=1.0)
+    with pytest.raises(edgepose.InvalidArgumentError, match="settings must be an edgepose.EstimateSettings"):
+        edgepose.Tracker(codebook, settings=None)

@@ -25,6 +25,11 @@ class InvalidCloudError(EdgePoseError, ValueError):
     points, or whose size does not fit the object (e.g. millimetres)."""
 
 
+class InvalidArgumentError(EdgePoseError, TypeError):
+    """An argument of the wrong type (``None`` for a codebook, a path where a
+    loaded codebook is expected, settings of another class), named in the message."""
+
+
 class InternalError(EdgePoseError, RuntimeError):
     """A bug inside edgepose, e.g. a panic in the Rust core, caught before it
     could abort the process. The message says where; please report it."""

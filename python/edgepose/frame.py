@@ -25,8 +25,8 @@ import numpy as np
 from edgepose.cloud import DEPTH_SCALE_MM, back_project, checked_depth, checked_mask
 from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder, default_encoder
-from edgepose.errors import EdgePoseError
-from edgepose.pose import Laps, Pose, check_estimate_inputs, pose_from_query
+from edgepose.errors import EdgePoseError, InvalidArgumentError
+from edgepose.pose import Laps, Pose, check_estimate_inputs, check_types, pose_from_query
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
 from edgepose.stages import Query, prepare_query
 
@@ -82,6 +82,13 @@ def estimate_many(
     t0 = time.perf_counter()
     workers = max(1, min(workers or usable_cores(), len(objects)))
     depth, K = checked_depth(depth, K, depth_scale)
+    for i, pair in enumerate(objects):
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
+            raise InvalidArgumentError(f"objects[{i}] must be a (mask, codebook) pair, got {pair!r:.80}")
+        try:
+            check_types(codebook=pair[1])
+        except InvalidArgumentError as e:
+            raise InvalidArgumentError(f"objects[{i}]: {e}") from None
     masks = [checked_mask(mask, depth.shape) for mask, _ in objects]
     codebooks = [codebook for _, codebook in objects]
     for codebook in codebooks:

@@ -22,6 +22,7 @@ from edgepose.cloud import DEPTH_SCALE_MM, checked_frame
 from edgepose.codebook import Codebook, CodebookError
 from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
+from edgepose.errors import InvalidArgumentError
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
 from edgepose.stages import (
     FlipMargin,
@@ -198,6 +199,7 @@ def estimate(
     ``settings`` holds every tuning value; ``k`` (codebook views verified) and
     ``icp_iterations`` (final ICP polish; 0: the hypotheses' coarse ICP only)
     are shortcuts for its fields; ``refine=False`` skips ICP."""
+    check_types(codebook=codebook, settings=settings)
     settings = settings.with_(
         **{name: value for name, value in (("k", k), ("icp_iterations", icp_iterations)) if value is not None}
     )
@@ -211,8 +213,10 @@ def estimate(
 
 
 def check_estimate_inputs(codebook: Codebook, encoder: Encoder, settings: EstimateSettings) -> None:
-    """``CodebookError`` if ``codebook`` was built by another encoder;
-    ``ValueError`` for ``settings.k`` or ``settings.icp_iterations`` out of range."""
+    """``InvalidArgumentError`` for a ``codebook``, ``encoder`` or ``settings``
+    of the wrong type; ``CodebookError`` if ``codebook`` was built by another
+    encoder; ``ValueError`` for ``settings.k`` or ``settings.icp_iterations`` out of range."""
+    check_types(codebook=codebook, encoder=encoder, settings=settings)
     if encoder.fingerprint != codebook.fingerprint:
         raise CodebookError(
             f"the codebook was built by encoder {codebook.fingerprint[:12]}…, a different encoder than the "
@@ -222,6 +226,22 @@ def check_estimate_inputs(codebook: Codebook, encoder: Encoder, settings: Estima
         raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {settings.k}")
     if not 0 <= settings.icp_iterations <= MAX_ICP_ITERATIONS:
         raise ValueError(f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {settings.icp_iterations}")
+
+
+def check_types(**arguments: object) -> None:
+    """``InvalidArgumentError`` naming the first of ``codebook``, ``encoder``
+    and ``settings`` (by keyword) that is not of its class."""
+    expected = {"codebook": Codebook, "encoder": Encoder, "settings": EstimateSettings}
+    how = {
+        "codebook": "edgepose.Codebook.load(path) or edgepose.build_codebook(mesh)",
+        "encoder": "edgepose.Encoder(), or leave it out",
+        "settings": "edgepose.EstimateSettings(...), or leave it out",
+    }
+    for name, value in arguments.items():
+        if not isinstance(value, expected[name]):
+            raise InvalidArgumentError(
+                f"{name} must be an edgepose.{expected[name].__name__} ({how[name]}), got {value!r:.80}"
+            )
 
 
 class Laps:

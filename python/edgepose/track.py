@@ -34,7 +34,7 @@ from edgepose.cloud import DEPTH_SCALE_MM, checked_frame, clean_cloud, cloud_fro
 from edgepose.codebook import Codebook
 from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
-from edgepose.pose import Pose, estimate
+from edgepose.pose import Pose, check_types, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages import Query, near_the_cloud, off_support_plane, scene_around, score_poses, subsample
 from edgepose.views import rotation_about, rotation_angle
@@ -92,6 +92,7 @@ class Tracker:
         track: TrackSettings = DEFAULT_TRACK_SETTINGS,
         encoder: Encoder | None = None,
     ) -> None:
+        check_types(codebook=codebook, settings=settings)
         self.codebook = codebook
         self.settings = settings
         self.track = track
