@@ -30,6 +30,7 @@ import argparse
 
 import edgepose
 import edgepose.pose as pose_module
+import edgepose.search as search_module
 import numpy as np
 from bench_pose import load_sources
 from edgepose import stages
@@ -54,7 +55,7 @@ class Seen:
 
     def wrap(self) -> None:
         """Wraps the stage functions ``estimate`` calls so that each records here."""
-        retrieve, best_pose, rival_get = pose_module.retrieve, pose_module.best_pose, stages.RivalSearch.get
+        retrieve, best_pose, rival_get = pose_module.retrieve, search_module.best_pose, stages.RivalSearch.get
 
         def retrieved(*args, **kwargs):
             found = retrieve(*args, **kwargs)
@@ -71,7 +72,7 @@ class Seen:
             self.rivals.append(found)
             return found
 
-        pose_module.retrieve, pose_module.best_pose, stages.RivalSearch.get = retrieved, chose, rival
+        pose_module.retrieve, search_module.best_pose, stages.RivalSearch.get = retrieved, chose, rival
 
     def clear(self) -> None:
         for seen in (self.retrievals, self.candidates, self.icp_caches, self.rivals):

@@ -117,20 +117,29 @@ def _open3d(dataset, targets, codebooks, levels: list[int]) -> dict[int, list[tu
     return out
 
 
-def _synthetic_clean(views: int) -> list[float]:
-    """Seconds per estimate on clean synthetic views of the shared YCB meshes (same process)."""
+def _synthetic_clean(views: int) -> list[tuple[float, dict, int, int]]:
+    """(seconds, stage timings, searches, points) per estimate on clean
+    synthetic views of the shared YCB meshes (same process)."""
     import edgepose
 
-    seconds = []
+    out = []
     for mesh in sorted(YCB.glob("*.ply")):
         obj = load_object(mesh, list(range(900000, 900000 + views)))
         codebook = edgepose.build_codebook(obj.mesh)
         edgepose.estimate(obj.clouds[0], codebook)
         for cloud in obj.clouds:
             t0 = time.perf_counter()
-            edgepose.estimate(cloud, codebook)
-            seconds.append(time.perf_counter() - t0)
-    return seconds
+            pose = edgepose.estimate(cloud, codebook)
+            out.append((time.perf_counter() - t0, pose.timings, pose.searches, len(cloud)))
+    return out
+
+
+def _stage_medians(timings: list[dict]) -> str:
+    stages: dict[str, list[float]] = {}
+    for t in timings:
+        for k, v in t.items():
+            stages.setdefault(k, []).append(v * 1000)
+    return ", ".join(f"{k} {np.median(v):.2f} ms ({len(v)})" for k, v in stages.items())
 
 
 def _pct(x: float) -> str:
@@ -205,26 +214,26 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
         )
     lines += ["", "## Speed against peers and against synthetic views (same process)", ""]
     base = [r.seconds for r in results if r.method == "estimate" and r.grow_px == 0]
-    syn = np.median(synthetic) * 1000 if synthetic else float("nan")
+    syn = np.median([s[0] for s in synthetic]) * 1000 if synthetic else float("nan")
+    real_points = np.median([r.points for r in results if r.method == "estimate" and r.grow_px == 0])
     lines.append(
-        f"- edgepose on clean synthetic views of the shared YCB meshes ({len(synthetic)} views): median "
-        f"{syn:.1f} ms; real frames (GT masks, cloud alone): median {np.median(base) * 1000:.1f} ms, "
+        f"- edgepose on clean synthetic views of the shared YCB meshes ({len(synthetic)} views, median "
+        f"{np.median([s[3] for s in synthetic]):.0f} points, second searches "
+        f"{100 * np.mean([s[2] == 2 for s in synthetic]):.0f} %): median {syn:.1f} ms; real frames (GT masks, "
+        f"cloud alone, median {real_points:.0f} points): median {np.median(base) * 1000:.1f} ms, "
         f"**{np.median(base) * 1000 / syn:.2f}×** the synthetic median."
     )
+    lines.append("- Synthetic stage medians: " + _stage_medians([s[1] for s in synthetic]) + ".")
     for grow, rows in peer.items():
         mine = [r.seconds for r in results if r.method == "estimate" and r.grow_px == grow]
         lines.append(
             f"- Open3D on the same real clouds (grow {grow}): median {np.median([r[0] for r in rows]) * 1000:.1f} ms, "
             f"**{np.median([r[0] for r in rows]) / np.median(mine):.1f}×** edgepose's median."
         )
-    stages: dict[str, list[float]] = {}
-    for r in results:
-        if r.method == "estimate" and r.grow_px == 0 and r.pose is not None:
-            for k, v in r.pose.timings.items():
-                stages.setdefault(k, []).append(v * 1000)
+    real_timings = [r.pose.timings for r in results if r.method == "estimate" and r.grow_px == 0 and r.pose]
     lines.append(
-        "- Stage medians (GT masks, cloud alone, over the estimates that ran the stage): "
-        + ", ".join(f"{k} {np.median(v):.2f} ms ({len(v)})" for k, v in stages.items())
+        "- Real stage medians (GT masks, cloud alone, over the estimates that ran the stage): "
+        + _stage_medians(real_timings)
         + "."
     )
     lines += [

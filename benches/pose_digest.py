@@ -6,7 +6,9 @@
     .venv/bin/python benches/pose_digest.py --check /tmp/before.npz     # on the new one
 
 Views: the five shared YCB meshes, ``--views`` seeds at each of ``--stress``
-levels (default clean, visible70, spill5, noise_far). Compared, exactly (no
+levels (default clean, visible70, spill5, noise_far), and with ``--real``
+every target of the real ycbv frames (annotated masks, from the cloud
+alone and given the frame). Compared, exactly (no
 tolerance): each codebook's codes, spectra and centroids, and per view the
 pose matrix, fit, score, chosen view, candidates, candidate fits, inlier
 fraction, free-space violation, kept points, confidence, searches,
@@ -26,7 +28,9 @@ import edgepose
 import numpy as np
 from edgepose.eval.benchmark import load_object
 
-YCB = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycb"
+REPO = Path(__file__).resolve().parents[1]
+YCB = REPO.parent / "shared" / "data" / "ycb"
+REAL = REPO.parent / "shared" / "data" / "ycbv_real"
 DEFAULT_STRESS = "clean,visible70,spill5,noise_far"
 
 
@@ -45,28 +49,52 @@ def digest(views: int, stress: list[str]) -> dict[str, np.ndarray]:
                 arrays[f"{name}/centroids"] = codebook.centroids
             for i, cloud in enumerate(bench.clouds):
                 pose = edgepose.estimate(cloud, codebook)
-                key = f"{name}/{level}/{i}"
-                arrays[f"{key}/matrix"] = pose.matrix
-                arrays[f"{key}/numbers"] = np.array(
-                    [
-                        pose.fit,
-                        pose.score,
-                        pose.view,
-                        pose.inlier_fraction,
-                        pose.free_space_violation,
-                        pose.kept_points,
-                        pose.confidence,
-                        pose.searches,
-                    ],
-                    dtype=np.float64,
-                )
-                arrays[f"{key}/evidence"] = np.array([pose.evidence[k] for k in sorted(pose.evidence)])
-                arrays[f"{key}/candidates"] = np.asarray(pose.candidates)
-                arrays[f"{key}/candidate_fit"] = np.asarray(pose.candidate_fit)
-                arrays[f"{key}/alternatives"] = np.array(
-                    [[*a.matrix.ravel(), a.margin] for a in pose.alternatives], dtype=np.float64
-                ).reshape(-1, 17)
+                arrays.update(pose_arrays(f"{name}/{level}/{i}", pose))
         print(f"{name}: done", file=sys.stderr)
+    return arrays
+
+
+def pose_arrays(key: str, pose: edgepose.Pose) -> dict[str, np.ndarray]:
+    """Every number of one pose, by name under ``key``."""
+    return {
+        f"{key}/matrix": pose.matrix,
+        f"{key}/numbers": np.array(
+            [
+                pose.fit,
+                pose.score,
+                pose.view,
+                pose.inlier_fraction,
+                pose.free_space_violation,
+                pose.kept_points,
+                pose.confidence,
+                pose.searches,
+            ],
+            dtype=np.float64,
+        ),
+        f"{key}/evidence": np.array([pose.evidence[k] for k in sorted(pose.evidence)]),
+        f"{key}/candidates": np.asarray(pose.candidates),
+        f"{key}/candidate_fit": np.asarray(pose.candidate_fit),
+        f"{key}/alternatives": np.array(
+            [[*a.matrix.ravel(), a.margin] for a in pose.alternatives], dtype=np.float64
+        ).reshape(-1, 17),
+    }
+
+
+def real_digest() -> dict[str, np.ndarray]:
+    """Every number of ``estimate`` on each real target of ``../shared/data/ycbv_real``
+    (annotated masks), from the cloud alone and given the frame."""
+    from edgepose.eval.bop import BopDataset
+    from edgepose.eval.bop_run import bop_codebooks
+    from edgepose.eval.real import estimate_targets
+
+    dataset = BopDataset(REAL)
+    targets = dataset.targets()
+    books = bop_codebooks(dataset, {t.obj_id for t in targets}, REPO / "benches" / ".cache" / "ycbv_real_codebooks")
+    arrays = {}
+    for with_frame in (False, True):
+        for r in estimate_targets(dataset, targets, books, 0, with_frame=with_frame):
+            arrays.update(pose_arrays(f"real/{r.method}/{r.scene_id}/{r.im_id}/{r.obj_id}", r.pose))
+    print("real frames: done", file=sys.stderr)
     return arrays
 
 
@@ -82,12 +110,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--views", type=int, default=4)
     parser.add_argument("--stress", default=DEFAULT_STRESS)
+    parser.add_argument("--real", action="store_true", help="also every real target of ../shared/data/ycbv_real")
     parser.add_argument("--out", type=Path, help="write the arrays here")
     parser.add_argument("--check", type=Path, help="compare exactly against this earlier --out")
     args = parser.parse_args()
     if not YCB.is_dir():
         sys.exit(f"needs the shared YCB meshes in {YCB}")
     arrays = digest(args.views, args.stress.split(","))
+    if args.real:
+        arrays.update(real_digest())
     print(f"{len(arrays)} arrays, sha256 {fingerprint(arrays)}")
     if args.out:
         np.savez(args.out, **arrays)

@@ -341,7 +341,7 @@ def test_a_pose_below_the_retry_confidence_is_searched_again(drill):
 
 
 def test_doubt_is_a_pose_that_explains_too_few_points_or_violates_free_space(drill):
-    from edgepose.pose import doubtful, explains_more
+    from edgepose.search import doubtful, explains_more
     from edgepose.stages import PoseScores, Refined, prepare_query
 
     mesh, codebook = drill
@@ -409,7 +409,7 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
     confidences and evidence, on whole and partly hidden views. The
     confidence uses stage 5's rival: it never looks for one of the refined
     pose itself."""
-    from edgepose import pose as pose_module
+    from edgepose import search as search_module
     from edgepose import stages
 
     mesh, codebook = drill
@@ -425,7 +425,7 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
     def not_wanted(*args, **kwargs):
         raise AssertionError("the confidence looked for the refined pose's rival itself")
 
-    monkeypatch.setattr(pose_module, "flip_rival", not_wanted)
+    monkeypatch.setattr(search_module, "flip_rival", not_wanted)
     settings = edgepose.EstimateSettings()
     for seed, occluders in [(3, 0), (11, 2), (21, 3)]:
         view = render_view(mesh, seed=seed, occluders=occluders)

@@ -26,7 +26,8 @@ from edgepose.cloud import DEPTH_SCALE_MM, back_project, checked_depth, checked_
 from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import EdgePoseError, InvalidArgumentError
-from edgepose.pose import Laps, Pose, check_estimate_inputs, check_types, pose_from_query
+from edgepose.pose import Pose, check_estimate_inputs, check_types, pose_from_query
+from edgepose.search import Laps
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
 from edgepose.stages import Query, prepare_query
 

@@ -11,39 +11,20 @@ Every tuning value lives in :class:`edgepose.settings.EstimateSettings`.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 
 from edgepose.cloud import DEPTH_SCALE_MM, checked_frame
 from edgepose.codebook import Codebook, CodebookError
-from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import InvalidArgumentError
+from edgepose.search import Laps, Search, Searched, first_search, judged, second_search, turned_check
 from edgepose.settings import DEFAULT_SETTINGS, MAX_ICP_ITERATIONS, EstimateSettings
-from edgepose.stages import (
-    FlipMargin,
-    Hypotheses,
-    PoseScores,
-    Query,
-    Refined,
-    alternatives,
-    candidate_poses,
-    flip_margin,
-    flip_rival,
-    nearest_views,
-    pair_poses,
-    prepare_query,
-    refine_hypotheses,
-    retrieve,
-    score_poses,
-    turned_pose,
-)
+from edgepose.stages import Hypotheses, Query, prepare_query, retrieve
 from edgepose.symmetry import NO_SYMMETRY, Symmetry, transform_from
-from edgepose.unseen_turn import UnseenTurn, view_left_open
+from edgepose.unseen_turn import UnseenTurn, near_axis, view_left_open
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,7 +78,8 @@ class Pose:
     second search ran), then confidence (the
     evidence, the alternatives among it, and its probability), turned_pose (only when the flip margin
     was low enough to try the pose's best turned rival: that and, if it
-    replaced the pose, its confidence), and the total."""
+    replaced the pose, its confidence), unseen_turn (only for an object with
+    a near-symmetry axis: :mod:`edgepose.unseen_turn`), and the total."""
     refined: bool = False
     """Whether ICP refined the pose (``refine=True`` and ICP found enough
     points near the model)."""
@@ -244,20 +226,6 @@ def check_types(**arguments: object) -> None:
             )
 
 
-class Laps:
-    """Seconds per stage of one estimate: call it with a stage's name when
-    the stage ends; ``timings`` adds up repeated stages."""
-
-    def __init__(self) -> None:
-        self.start = self.clock = time.perf_counter()
-        self.timings: dict[str, float] = {}
-
-    def __call__(self, stage: str) -> None:
-        now = time.perf_counter()
-        self.timings[stage] = self.timings.get(stage, 0.0) + now - self.clock
-        self.clock = now
-
-
 def pose_from_query(
     query: Query,
     codebook: Codebook,
@@ -267,276 +235,62 @@ def pose_from_query(
     laps: Laps,
     encoded: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Pose:
-    """Stages 2–5 and the confidence for a prepared ``query`` (``encoded``:
+    """Stages 2–5, the second search, the turned-pose check, the confidence
+    and the turn the view leaves open, for a prepared ``query`` (``encoded``:
     its map's code and spectrum, when already computed), as :func:`estimate`."""
-
-    def scored(
-        rotations: np.ndarray, translations: np.ndarray, views: np.ndarray, similarity: np.ndarray
-    ) -> Candidates:
-        """Stage 4 for candidate poses (model frame → camera) and their viewpoints."""
-        scores = score_poses(
-            query,
-            codebook,
-            query.keypoints,
-            rotations,
-            translations,
-            settings.candidate_inlier_distance * codebook.model.diameter,
-            settings.candidate_free_space_weight,
-            settings,
-        )
-        laps("score_poses")
-        return Candidates(rotations, translations, scores, views, similarity)
-
-    def posed(first: int, end: int) -> Candidates:
-        """Stages 3 and 4 for the retrieved views ``first``..``end``."""
-        views = retrieval.views[first:end]
-        rotations, translations = candidate_poses(query, codebook, views, retrieval.angles[first:end], settings)
-        laps("candidate_poses")
-        return scored(rotations, translations, views, retrieval.similarity[first:end])
-
-    def paired() -> Candidates:
-        """Stages 3 and 4 for the point pairs' poses (their views: each
-        pose's nearest viewpoint)."""
-        rotations, translations = pair_poses(query, codebook, settings)
-        laps("pair_poses")
-        nearest = nearest_views(codebook, rotations, translations)
-        return scored(rotations, translations, nearest, codebook.codes[nearest] @ retrieval.code)
-
     # One retrieval serves both searches: the second one's extra views (if
     # retry_k asks for any) are the next ones down the same ranking.
     retry_k = min(settings.retry_k, len(codebook)) if refine else 0
     retrieval = retrieve(query, codebook, encoder, max(settings.k, retry_k), encoded)
     laps("retrieve")
-    k = settings.k
-    found = posed(0, k)
-    pairs = settings.pair_poses if refine else 0
-    observed_extent = math.hypot(*box_sides(query.points)) / codebook.model.diameter
-
     judge = encoder.judge(with_scene=query.scene is not None)
-
-    def judged(
-        found: Candidates,
-        result: Refined,
-        searched: Refined,
-        loose: PoseScores,
-        searches: int,
-        flips: FlipMargin | None = None,
-    ) -> tuple[dict, float, FlipMargin, Hypotheses]:
-        """The evidence, confidence (NaN without a confidence model), flip
-        margin and alternatives of ``result``, a search's pose from the
-        candidates ``found`` (``searched``: the last search's pick, whose
-        hypotheses the alternatives come from); ``flips``: that margin when
-        already known (a second search kept the first pose)."""
-        tight = (
-            result.scores
-            if result.refined
-            else scores_at(query, codebook, result, settings.hypothesis_inlier_distance, settings)
-        )
-        if flips is None:
-            rival = (
-                result.rival.get()
-                if result.rival is not None
-                else flip_rival(query, codebook, result.R, result.t, settings)
-            )
-            flips = flip_margin(tight, rival)
-        others = alternatives(codebook, result, searched.hypotheses, flips.rival, settings)
-        evidence = evidence_of(
-            inlier_fraction=tight.inlier_fraction[0],
-            loose_inlier_fraction=loose.inlier_fraction[0],
-            fit_ratio=tight.fit[0] / (settings.hypothesis_inlier_distance * codebook.model.diameter),
-            free_space_violation=loose.free_space_violation[0],
-            score=found.similarity[result.candidate],
-            searches=searches,
-            refined=result.refined,
-            margin=result.margin,
-            off_silhouette=loose.off_silhouette[0],
-            observed_extent=observed_extent,
-            translation_constraint=tight.translation_constraint[0],
-            flip_margin=flips.margin,
-            flip_fit_ratio=float(tight.fit[0] / max(flips.rival.fits[0], 1e-12)) if len(flips.rival.fits) else 0.0,
-            rmse_ratio=result.rmse_ratio,
-            alternatives=len(others.net),
-            alternative_margin=float(tight.net[0] - others.net[0]) if len(others.net) else 1.0,
-            scene_violation=loose.scene_violation[0],
-        )
-        return evidence, judge.probability(evidence) if judge else float("nan"), flips, others
-
-    icp_cache: dict = {}  # the second search reuses the first one's ICPs
-    result = best_pose(query, codebook, found, refine, settings, icp_cache)
-    searched = result  # the last search's pick: its hypotheses are the alternatives' pool
-    loose = loose_scores(query, codebook, result, settings)
-    searches = 1
-    may_retry = retry_k > k or pairs > 0
-    # A doubtful pose is searched again whatever its confidence: that is judged after.
-    retry = may_retry and doubtful(query, codebook, result, settings, loose)
+    search = Search(query, codebook, encoder, settings, laps, retrieval, judge)
+    may_retry = retry_k > settings.k or (settings.pair_poses if refine else 0) > 0
+    found, result, loose, retry = first_search(search, refine, may_retry)
     laps("refine_hypotheses")
-    evidence: dict[str, float] | None = None
-    flips: FlipMargin | None = None
-    others: Hypotheses | None = None
+    first = None
     if not retry:
-        evidence, confidence, flips, others = judged(found, result, searched, loose, searches)
+        first = Searched(found, result, result, loose, 1, judged(search, found, result, result, loose, 1))
         laps("confidence")
-        retry = may_retry and confidence < settings.retry_below_confidence
-    if retry:
-        if retry_k > k:
-            found = found.extended(posed(k, retry_k))
-        if pairs:
-            found = found.extended(paired())
-        wider = best_pose(
-            query, codebook, found, refine, settings.with_(hypotheses=settings.retry_hypotheses), icp_cache
-        )
-        searches, searched = 2, wider
-        # The first pose's flip margin, if it was judged, unless the wider search beats it.
-        if explains_more(wider, result):
-            result, loose, flips = wider, loose_scores(query, codebook, wider, settings), None
-        laps("refine_hypotheses")
-        evidence, confidence, flips, others = judged(found, result, searched, loose, searches, flips)
-        laps("confidence")
-    assert evidence is not None and flips is not None and others is not None  # judged once or twice above
-    if flips.margin < settings.turn_check_below:
-        # The view may show the object turned onto itself: its best turned
-        # rival, refined, replaces the pose if it explains the view better.
-        turned = turned_pose(query, codebook, result, flips, settings)
-        if turned is not None:
-            result, loose = turned, loose_scores(query, codebook, turned, settings)
-            evidence, confidence, flips, others = judged(found, result, searched, loose, searches)
-        laps("turned_pose")
-    turn, others, confidence = view_left_open(query, codebook, result, others, confidence, settings)
-    if turn is not None:
-        evidence["unseen_turn_share"] = turn.share
-    laps("unseen_turn")
-    timings = laps.timings
-    timings["total"] = time.perf_counter() - laps.start
-    model = codebook.model
-    # Model frame = object (mesh) frame shifted by the model centre.
-    t_obj = result.t - result.R @ model.centre
+        retry = may_retry and first.judgement.confidence < settings.retry_below_confidence
+    searched = second_search(search, first, found, result, loose, refine, retry_k) if retry else first
+    assert searched is not None  # judged once or twice above
+    searched = turned_check(search, searched)
+    others, confidence, turn = searched.judgement.others, searched.judgement.confidence, None
+    if near_axis(codebook.symmetry) is not None:  # a mug: the view may leave the turn about its body open
+        turn, others, confidence = view_left_open(query, codebook, searched.result, others, confidence, settings)
+        if turn is not None:
+            searched.judgement.evidence["unseen_turn_share"] = turn.share
+        laps("unseen_turn")
+    return as_pose(searched, others, confidence, turn, search)
+
+
+def as_pose(searched: Searched, others: Hypotheses, confidence: float, turn: UnseenTurn | None, search: Search) -> Pose:
+    """The search's outcome as a :class:`Pose` in the object (mesh) frame."""
+    result, found, codebook = searched.result, searched.found, search.codebook
+    timings = search.laps.timings
+    timings["total"] = time.perf_counter() - search.laps.start
+    centre = codebook.model.centre  # model frame = object (mesh) frame shifted by the model centre
     return Pose(
         R=result.R,
-        t=t_obj,
+        t=result.t - result.R @ centre,
         score=float(found.similarity[result.candidate]),
         fit=float(result.scores.fit[0]),
         view=int(found.views[result.candidate]),
         candidates=found.views,
         candidate_fit=found.scores.fit,
         timings=timings,
-        searches=searches,
+        searches=searched.searches,
         refined=result.refined,
         inlier_fraction=float(result.scores.inlier_fraction[0]),
         free_space_violation=float(result.scores.free_space_violation[0]),
-        kept_points=len(query.points),
+        kept_points=len(search.query.points),
         confidence=confidence,
-        strict_threshold=judge.strict_threshold if judge else float("nan"),
-        evidence=evidence,
+        strict_threshold=search.judge.strict_threshold if search.judge else float("nan"),
+        evidence=searched.judgement.evidence,
         symmetry=codebook.symmetry,
         alternatives=tuple(
-            Alternative(R, t - R @ model.centre, float(result.scores.net[0] - net)) for R, t, net in zip(*others)
+            Alternative(R, t - R @ centre, float(result.scores.net[0] - net)) for R, t, net in zip(*others)
         ),
         unseen_turn=turn,
     )
-
-
-class Candidates(NamedTuple):
-    """Candidate poses (model frame → camera), their stage-4 scores and viewpoints."""
-
-    rotations: np.ndarray
-    """(C, 3, 3)."""
-    translations: np.ndarray
-    """(C, 3), metres."""
-    scores: PoseScores
-    views: np.ndarray
-    """(C,) the codebook viewpoint of each (a point-pair pose: the nearest one)."""
-    similarity: np.ndarray
-    """(C,) cosine similarity of that viewpoint's code to the query's."""
-
-    def extended(self, more: Candidates) -> Candidates:
-        """These followed by ``more`` (each candidate's terms are its own)."""
-        return Candidates(
-            np.concatenate([self.rotations, more.rotations]),
-            np.concatenate([self.translations, more.translations]),
-            PoseScores(*(np.concatenate([a, b]) for a, b in zip(self.scores, more.scores))),
-            np.concatenate([self.views, more.views]),
-            np.concatenate([self.similarity, more.similarity]),
-        )
-
-
-def best_pose(
-    query: Query,
-    codebook: Codebook,
-    found: Candidates,
-    refine: bool,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-    icp_cache: dict | None = None,
-) -> Refined:
-    """The lowest-cost candidate, or (``refine``) the winner of stage 5 when
-    its ICP found enough points."""
-    chosen = int(np.argmin(found.scores.cost))
-    best = Refined(
-        chosen,
-        found.rotations[chosen],
-        found.translations[chosen],
-        PoseScores(*(s[chosen : chosen + 1] for s in found.scores)),
-        False,
-    )
-    if refine:
-        best = (
-            refine_hypotheses(
-                query, codebook, found.rotations, found.translations, found.scores.cost, settings, icp_cache
-            )
-            or best
-        )
-    return best
-
-
-def scores_at(
-    query: Query, codebook: Codebook, result: Refined, inlier_distance: float, settings: EstimateSettings
-) -> PoseScores:
-    """A search's pose (model frame → camera) scored on the hypotheses'
-    observed points at ``inlier_distance`` × diameter."""
-    return score_poses(
-        query,
-        codebook,
-        query.sample(settings.hypothesis_points, settings.subsample_seed),
-        result.R[None],
-        result.t[None],
-        inlier_distance * codebook.model.diameter,
-        0.0,
-        settings,
-    )
-
-
-def loose_scores(
-    query: Query, codebook: Codebook, result: Refined, settings: EstimateSettings = DEFAULT_SETTINGS
-) -> PoseScores:
-    """The pose's scores at the looser ``settings.doubt_inlier_distance``."""
-    return scores_at(query, codebook, result, settings.doubt_inlier_distance, settings)
-
-
-def doubtful(
-    query: Query,
-    codebook: Codebook,
-    result: Refined,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-    loose: PoseScores | None = None,
-) -> bool:
-    """Whether a search's pose (model frame → camera) is worth a second,
-    wider search: not refined, or explaining too few of the hypotheses'
-    observed points within ``settings.doubt_inlier_distance``, or
-    contradicting free space (``loose``: its :func:`loose_scores`, if known).
-    :func:`estimate` also searches again when the pose's confidence is below
-    ``settings.retry_below_confidence``."""
-    if not result.refined:
-        return True
-    scores = loose or loose_scores(query, codebook, result, settings)
-    return bool(
-        scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
-        or scores.free_space_violation[0] > settings.retry_above_free_space
-        or scores.scene_violation[0] > settings.retry_above_scene_violation
-    )
-
-
-def explains_more(candidate: Refined, incumbent: Refined) -> bool:
-    """Whether ``candidate`` beats ``incumbent``: refined where it is not, or
-    a larger share of explained points net of free-space (and scene) violations."""
-    if candidate.refined != incumbent.refined:
-        return candidate.refined
-    return bool(candidate.scores.net[0] > incumbent.scores.net[0])
