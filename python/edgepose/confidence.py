@@ -183,8 +183,8 @@ class ConfidenceModel:
     _curves: _core.ConfidenceCurves = field(init=False, repr=False, compare=False)
     """The same model on the unstandardised terms, summed by the Rust core
     (``rust/src/confidence.rs``), term by term in the order plain Python
-    would (the same bits): ~25 µs a pose in situ against ~60 µs for the
-    same loop in Python (caches cold after the search), 2026-11-27."""
+    would (the same bits), faster than the same loop in Python
+    (``docs/confidence.md``, "The model")."""
 
     def __post_init__(self) -> None:
         term_count = sum(len(TERMS[n]) for n in self.features)
