@@ -479,7 +479,12 @@ def settings_from(changes: list[str]) -> EstimateSettings:
             raise ValueError(f"--set {change!r}: expected FIELD=VALUE with FIELD one of {', '.join(fields)}")
         kind = type(fields[field_name])
         try:
-            parsed[field_name] = {"True": True, "False": False}[text] if kind is bool else kind(text)
+            if kind is bool:
+                parsed[field_name] = {"True": True, "False": False}[text]
+            elif kind is tuple:  # numbers, comma-separated
+                parsed[field_name] = tuple(float(x) for x in text.split(","))
+            else:
+                parsed[field_name] = kind(text)
         except (KeyError, ValueError):
             raise ValueError(f"--set {change!r}: {field_name} takes a {kind.__name__}") from None
     return DEFAULT_SETTINGS.with_(**parsed)

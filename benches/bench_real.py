@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_pose import settings_from
 from edgepose.eval.baselines import Open3DBaseline
 from edgepose.eval.benchmark import load_object, timed_estimate
 from edgepose.eval.bop import YCBV_OBJ_ID, BopDataset
@@ -53,7 +54,17 @@ def main() -> None:
     parser.add_argument("--synthetic-views", type=int, default=8, help="clean synthetic views per shared YCB mesh")
     parser.add_argument("--no-track", action="store_true", help="skip the clips")
     parser.add_argument("--out", type=Path, default=REPO / "benches" / "REAL.md")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="change an EstimateSettings field (repeatable; never for benches/REAL.md)",
+    )
     args = parser.parse_args()
+    settings = settings_from(args.set)
+    if args.set and args.out.resolve() == (REPO / "benches" / "REAL.md").resolve():
+        parser.error("--set never writes the reported figures (benches/REAL.md); choose another --out")
     load_before = os.getloadavg()
     started = time.perf_counter()
     dataset = BopDataset(args.data)
@@ -65,7 +76,7 @@ def main() -> None:
     for grow in levels:
         for with_frame in (False, True):
             t0 = time.perf_counter()
-            results += estimate_targets(dataset, targets, codebooks, grow, with_frame=with_frame)
+            results += estimate_targets(dataset, targets, codebooks, grow, with_frame=with_frame, settings=settings)
             print(f"grow {grow} px, frame {with_frame}: {time.perf_counter() - t0:.1f} s", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     _write_csv(args.out.with_name(args.out.stem + "_targets.csv"), results)
@@ -76,7 +87,7 @@ def main() -> None:
     synthetic = _synthetic_clean(args.synthetic_views)
     print(f"synthetic: {time.perf_counter() - t0:.1f} s", flush=True)
     t0 = time.perf_counter()
-    clips = None if args.no_track else track_clips(dataset, codebooks)
+    clips = None if args.no_track else track_clips(dataset, codebooks, settings=settings)
     print(f"clips: {time.perf_counter() - t0:.1f} s", flush=True)
     t0 = time.perf_counter()
     ar = {}
@@ -175,6 +186,10 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
         f"{len({(r.scene_id, r.im_id) for r in results})} images, {len({r.obj_id for r in results})} objects), "
         f"commit {commit.stdout.strip()}, {datetime.datetime.now():%Y-%m-%d %H:%M}, {platform.machine()}, "
         f"{os.cpu_count()} CPUs, load {load_before[0]:.2f} before, {seconds / 60:.1f} min in all.",
+        "",
+        f"Settings changed from the defaults: {', '.join(f'`{c}`' for c in args.set)}."
+        if args.set
+        else "Default settings.",
         "",
         "Correct: depth-fair ADD(-S) < 0.1 × diameter (ADD-S for objects edgepose finds shape-symmetric). "
         "Masks: the annotated visible masks (`grow 0`), or grown by 2, 4, 8 px as a detector's spill. "
