@@ -22,6 +22,7 @@ frame → camera where they come from the search (model = mesh − centre).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -80,10 +81,17 @@ class UnseenTurn:
 def near_axis(symmetry: Symmetry) -> NearAxis | None:
     """The axis of at least :data:`MIN_TURNS_ABOUT_AXIS` of the object's
     near turns, or None. Its direction is their mean axis, its point the
-    least-squares fixed point of the turns."""
-    near = np.asarray(symmetry.near, dtype=np.float64).reshape(-1, 4, 4)
+    least-squares fixed point of the turns. Worked out once per set of
+    near turns (every estimate of an object asks)."""
+    near = np.ascontiguousarray(symmetry.near, dtype=np.float64).reshape(-1, 4, 4)
     if len(near) < MIN_TURNS_ABOUT_AXIS or len(symmetry.continuous):
         return None
+    return _near_axis(near.tobytes())
+
+
+@functools.lru_cache(maxsize=256)
+def _near_axis(near_turns: bytes) -> NearAxis | None:
+    near = np.frombuffer(near_turns, dtype=np.float64).reshape(-1, 4, 4)
     axes = np.array([rotation_axis(T[:3, :3]) for T in near])
     for reference in axes:
         aligned = axes * np.sign(axes @ reference)[:, None]
@@ -98,6 +106,8 @@ def near_axis(symmetry: Symmetry) -> NearAxis | None:
             b = np.concatenate([T[:3, 3] for T in turns])
             point = np.linalg.lstsq(A, b, rcond=None)[0]
             point -= axis * (point @ axis)
+            axis.setflags(write=False)  # shared by every estimate of the object
+            point.setflags(write=False)
             return NearAxis(axis, point)
     return None
 
@@ -142,24 +152,25 @@ def unseen_turn(
     angles = np.where(angles > 180.0, angles - 360.0, angles)
     rotations, translations = turned_about(R, t, axis, codebook.model.centre, angles)
     net = net_of(rotations, translations)
+    # Only the turns that explain the view matter from here (the pose, at 0°, first).
     explains = net >= net[0] - settings.alternative_within
+    angles, rotations, translations, net = angles[explains], rotations[explains], translations[explains], net[explains]
     limit = RIGHT_WITHIN * codebook.model.diameter
     # ADD from the pose (ADD-S for a symmetric object: a turn onto a symmetry is the pose).
     near = pose_distances(codebook, rotations, translations, 0) < limit
-    if not (explains & ~near).any():
+    if near.all():
         return None
-    share = float((explains & near).sum() / explains.sum())
-    found = UnseenTurn(axis.axis, axis.point, angles[explains], share)
+    found = UnseenTurn(axis.axis, axis.point, angles, float(near.mean()))
     # A spread: sweeping away from the pose both ways, a turn joins when it is
     # more than 0.1 × diameter from the last one taken (or from the pose).
     picked: list[int] = []
     for direction in (1.0, -1.0):
         apart = ~near
         for i in np.argsort(direction * angles):
-            if direction * angles[i] > 0 and explains[i] and apart[i]:
+            if direction * angles[i] > 0 and apart[i]:
                 picked.append(int(i))
                 apart = pose_distances(codebook, rotations, translations, int(i)) >= limit
-    picked = sorted(set(picked), key=lambda i: -net[i])[: settings.unseen_turn_alternatives]
+    picked = sorted(sorted(set(picked)), key=lambda i: -net[i])[: settings.unseen_turn_alternatives]
     return found, rotations[picked], translations[picked], net[picked]
 
 
