@@ -201,26 +201,24 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
         "median ms | p90 ms |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for method in methods:
-        for grow in levels:
-            level = [r for r in results if r.method == method and r.grow_px == grow]
-            ms = np.array([r.seconds for r in level]) * 1000
-            scored = ar.get((method, grow))
-            bop = " | ".join(
-                f"{100 * x:.1f}" if scored else "—"
-                for x in (
-                    (scored.overall.ar, scored.overall.ar_vsd, scored.overall.ar_mssd, scored.overall.ar_mspd)
-                    if scored
-                    else (0,) * 4
-                )
+    for method, grow, level in _by_level(results, methods, levels):
+        ms = np.array([r.seconds for r in level]) * 1000
+        scored = ar.get((method, grow))
+        bop = " | ".join(
+            f"{100 * x:.1f}" if scored else "—"
+            for x in (
+                (scored.overall.ar, scored.overall.ar_vsd, scored.overall.ar_mssd, scored.overall.ar_mspd)
+                if scored
+                else (0,) * 4
             )
-            second = np.mean([r.pose is not None and r.pose.searches == 2 for r in level])
-            lines.append(
-                f"| {method} | grow {grow} | {_pct(100 * np.mean([r.correct for r in level]))} | "
-                f"{_pct(100 * np.mean([r.correct or r.alternative_correct for r in level]))} | "
-                f"{bop} | "
-                f"{_pct(100 * second)} | {np.median(ms):.1f} | {np.percentile(ms, 90):.1f} |"
-            )
+        )
+        second = np.mean([r.pose is not None and r.pose.searches == 2 for r in level])
+        lines.append(
+            f"| {method} | grow {grow} | {_pct(100 * np.mean([r.correct for r in level]))} | "
+            f"{_pct(100 * np.mean([r.correct or r.alternative_correct for r in level]))} | "
+            f"{bop} | "
+            f"{_pct(100 * second)} | {np.median(ms):.1f} | {np.percentile(ms, 90):.1f} |"
+        )
     for grow, rows in peer.items():
         ms = np.array([r[0] for r in rows]) * 1000
         lines.append(
@@ -262,13 +260,10 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
         "| strict: right kept |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for method in methods:
-        for grow in levels:
-            level = [r for r in results if r.method == method and r.grow_px == grow]
-            lines.append(
-                f"| {method} | grow {grow} | {_pct(100 * np.mean([r.correct for r in level]))} "
-                + _confidence_cells(level)
-            )
+    for method, grow, level in _by_level(results, methods, levels):
+        lines.append(
+            f"| {method} | grow {grow} | {_pct(100 * np.mean([r.correct for r in level]))} " + _confidence_cells(level)
+        )
     lines += ["", "## Per object (ADD(-S), depth-fair)", ""]
     header = " | ".join(f"{m} g{g}" for m in methods for g in levels)
     lines += [f"| object | targets | symmetric | {header} |", "| --- | ---: | --- |" + " ---: |" * (2 * len(levels))]
@@ -309,6 +304,13 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
                 f"| {sum(f.mode == 'reinitialised' for f in mine)} |"
             )
     return "\n".join(lines) + "\n"
+
+
+def _by_level(results: list[TargetResult], methods, levels):
+    """(method, mask growth, its results) for each method and level, in order."""
+    for method in methods:
+        for grow in levels:
+            yield method, grow, [r for r in results if r.method == method and r.grow_px == grow]
 
 
 def real_objects_symmetric(results: list[TargetResult]) -> bool:
