@@ -379,3 +379,55 @@ def test_settings_and_frame_objects_of_the_wrong_type_are_named(drill):
         edgepose.estimate_many(view.depth, view.camera.K, [codebook], depth_scale=1.0)
     with pytest.raises(edgepose.InvalidArgumentError, match="settings must be an edgepose.EstimateSettings"):
         edgepose.Tracker(codebook, settings=None)
+
+
+@pytest.mark.parametrize("wrong", [None, 3, b"power_drill.ply", np.zeros((4, 3))])
+def test_file_doors_name_an_argument_that_is_not_a_path(wrong):
+    from edgepose.eval.bop import BopDataset
+    from edgepose.io import parse_intrinsics, read_cloud, read_depth_png, read_mask_png, read_pose
+
+    calls = {
+        "Codebook.load": (lambda: edgepose.Codebook.load(wrong), "path must be a file path"),
+        "read_mesh": (lambda: edgepose.read_mesh(wrong), "path must be a file path"),
+        "load_model": (lambda: edgepose.load_model(wrong), "source must be a mesh file path"),
+        "build_codebook": (lambda: edgepose.build_codebook(wrong), "source must be a mesh file path"),
+        "read_cloud": (lambda: read_cloud(wrong), "path must be a file path"),
+        "read_depth_png": (lambda: read_depth_png(wrong), "path must be a file path"),
+        "read_mask_png": (lambda: read_mask_png(wrong), "path must be a file path"),
+        "read_pose": (lambda: read_pose(wrong), "path must be a file path"),
+        "parse_intrinsics": (lambda: parse_intrinsics(wrong), "intrinsics must be a file path"),
+        "BopDataset": (lambda: BopDataset(wrong), "root must be a file path"),
+    }
+    for door, (call, message) in calls.items():
+        with pytest.raises(edgepose.InvalidArgumentError, match=message) as caught:
+            call()
+        assert isinstance(caught.value, TypeError), door
+
+
+def test_a_codebook_save_to_a_non_path_is_named(drill):
+    _, codebook = drill
+    with pytest.raises(edgepose.InvalidArgumentError, match="path must be a file path"):
+        codebook.save(None)
+
+
+@pytest.mark.parametrize("scale", [None, "1000", True, np.array([1000.0])])
+def test_a_depth_scale_that_is_not_one_number_is_named(scale):
+    depth = np.full((4, 5), 1000, np.uint16)
+    K = [[500.0, 0, 2], [0, 500.0, 2], [0, 0, 1]]
+    with pytest.raises(edgepose.InvalidCloudError, match="depth_scale must be a positive number"):
+        edgepose.cloud_from_depth(depth, K, depth_scale=scale)
+
+
+def test_masks_are_bool_or_integer_and_a_float_map_is_refused(drill):
+    depth = np.full((4, 5), 1000, np.uint16)
+    K = [[500.0, 0, 2], [0, 500.0, 2], [0, 0, 1]]
+    mask = np.zeros((4, 5), np.uint8)
+    mask[1:3, 1:4] = 255  # OpenCV's 0/255 mask
+    assert len(edgepose.cloud_from_depth(depth, K, mask)) == 6
+    assert len(edgepose.cloud_from_depth(depth, K, mask > 0)) == 6
+    for wrong in (mask.astype(np.float32) / 255, np.full((4, 5), "x"), mask.astype(object)):
+        with pytest.raises(edgepose.InvalidCloudError, match="mask must be bool or integer"):
+            edgepose.cloud_from_depth(depth, K, wrong)
+    _, codebook = drill
+    with pytest.raises(edgepose.InvalidCloudError, match="mask must be bool or integer"):
+        edgepose.estimate_many(depth, K, [(mask.astype(np.float64), codebook)])

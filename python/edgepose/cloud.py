@@ -6,6 +6,8 @@ z forward), already segmented to one object.
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 from edgepose import _core
@@ -139,6 +141,11 @@ def _rows_of_valid(masks: list[np.ndarray], counts: list[int], ranks: np.ndarray
     return rows
 
 
+def is_number(value: object) -> bool:
+    """Whether ``value`` is one real number (not a bool, an array or ``None``)."""
+    return isinstance(value, (numbers.Real, np.number)) and not isinstance(value, (bool, np.bool_))
+
+
 def pinhole_matrix(K: object) -> np.ndarray:
     """``K`` as a (3, 3) float64 pinhole camera matrix, checked: finite,
     fx, fy > 0 and last row (0, 0, 1); otherwise InvalidCloudError."""
@@ -177,7 +184,7 @@ def cloud_from_depth(
     surfaces (see :data:`FLYING_PIXEL_JUMP`). ``erode_px`` shrinks the mask
     by that many pixels first (a mask known to spill far)."""
     depth, K = checked_depth(depth, K, depth_scale)
-    if max_jump is not None and not (np.isfinite(max_jump) and max_jump > 0):
+    if max_jump is not None and not (is_number(max_jump) and np.isfinite(max_jump) and max_jump > 0):
         raise InvalidCloudError(f"max_jump must be a positive fraction of the depth or None, got {max_jump}")
     if not (isinstance(erode_px, (int, np.integer)) and erode_px >= 0):
         raise InvalidCloudError(f"erode_px must be a non-negative whole number of pixels, got {erode_px!r}")
@@ -204,8 +211,10 @@ def checked_depth(depth: object, K: object, depth_scale: float) -> tuple[np.ndar
         raise InvalidCloudError(f"depth must be a 2-D image, got shape {depth.shape}")
     if not (np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)):
         raise InvalidCloudError(f"depth must hold numbers, got dtype {depth.dtype}")
-    if not (np.isfinite(depth_scale) and depth_scale > 0):
-        raise InvalidCloudError(f"depth_scale must be a positive number (depth units per metre), got {depth_scale}")
+    if not (is_number(depth_scale) and np.isfinite(depth_scale) and depth_scale > 0):
+        raise InvalidCloudError(
+            f"depth_scale must be a positive number (depth units per metre), got {depth_scale!r:.40}"
+        )
     if depth.dtype not in (np.dtype(np.uint16), np.dtype(np.float32), np.dtype(np.float64)):
         depth = depth.astype(np.float64)
     return np.ascontiguousarray(depth), K
@@ -224,8 +233,15 @@ def checked_frame(
 
 
 def checked_mask(mask: object, shape: tuple[int, ...]) -> np.ndarray:
-    """``mask`` as a bool image of ``shape``; InvalidCloudError if its shape differs."""
-    mask = np.asarray(mask, dtype=bool)
+    """``mask`` (bool, or integers: non-zero is the object) as a bool image of
+    ``shape``; InvalidCloudError if its shape differs or it holds anything
+    else (a float map of probabilities must be thresholded by the caller)."""
+    mask = np.asarray(mask)
+    if not (mask.dtype == np.bool_ or np.issubdtype(mask.dtype, np.integer)):
+        raise InvalidCloudError(
+            f"mask must be bool or integer (non-zero: the object), got dtype {mask.dtype}; threshold a float map first"
+        )
+    mask = mask.astype(bool, copy=False)
     if mask.shape != shape:
         raise InvalidCloudError(f"mask shape {mask.shape} differs from depth shape {shape}")
     return mask

@@ -38,7 +38,7 @@ import numpy as np
 
 from edgepose import _core
 from edgepose.encoder import Encoder, default_encoder
-from edgepose.errors import EdgePoseError
+from edgepose.errors import EdgePoseError, InvalidArgumentError, checked_path
 from edgepose.maps import DEFAULT_MAP_POINTS, compute_maps
 from edgepose.model import DEFAULT_MODEL_POINTS, MeshSource, StandardModel, load_model
 from edgepose.settings import usable_cores
@@ -108,8 +108,9 @@ class Codebook:
         either the old file or the new one, never a broken one."""
         from safetensors.numpy import save
 
+        path = checked_path(path)
         tensors = self._tensors()
-        _write_atomically(Path(path), _canonical_header(save(tensors, self._metadata(tensors))))
+        _write_atomically(path, _canonical_header(save(tensors, self._metadata(tensors))))
 
     def _tensors(self) -> dict[str, np.ndarray]:
         """The stored arrays, in their file dtypes."""
@@ -169,7 +170,7 @@ class Codebook:
         from safetensors import SafetensorError
         from safetensors.numpy import load
 
-        path = Path(path)
+        path = checked_path(path)
         encoder = encoder or default_encoder()
         try:
             info = path.stat()
@@ -288,6 +289,12 @@ def build_codebook(
     """Codebook of one object: a mesh file or ``trimesh.Trimesh`` (see
     :func:`edgepose.load_model` for ``scale``), or a ready StandardModel.
     Building is offline work, so the default encoder uses every core."""
+    import trimesh
+
+    if not isinstance(source, (str, os.PathLike, trimesh.Trimesh, StandardModel)):
+        raise InvalidArgumentError(
+            f"source must be a mesh file path, a trimesh.Trimesh or an edgepose.StandardModel, got {source!r:.80}"
+        )
     encoder = encoder or default_encoder(threads=usable_cores())
     t0 = time.perf_counter()
     # Hashed before reading: if the file changes in between, the codebook

@@ -6,6 +6,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 
 class EdgePoseError(Exception):
     """Base class of every error edgepose raises on purpose."""
@@ -33,3 +36,11 @@ class InvalidArgumentError(EdgePoseError, TypeError):
 class InternalError(EdgePoseError, RuntimeError):
     """A bug inside edgepose, e.g. a panic in the Rust core, caught before it
     could abort the process. The message says where; please report it."""
+
+
+def checked_path(value: object, name: str = "path") -> Path:
+    """``value`` as a ``Path``; ``InvalidArgumentError`` naming ``name`` if it
+    is not a ``str`` or ``os.PathLike`` (``None``, bytes, a number, an array)."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise InvalidArgumentError(f"{name} must be a file path (str or os.PathLike), got {value!r:.80}")
+    return Path(value)

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from edgepose.cloud import pinhole_matrix
-from edgepose.errors import EdgePoseError, InvalidCloudError
+from edgepose.errors import EdgePoseError, InvalidCloudError, checked_path
 
 #: Cloud file suffixes :func:`read_cloud` understands.
 CLOUD_SUFFIXES = (".ply", ".pcd", ".npy")
@@ -184,7 +184,7 @@ def parse_intrinsics(text: str) -> np.ndarray:
     """(3, 3) camera matrix K from 9 numbers (row-major, separated by commas
     or spaces) or from a JSON file holding a 3×3 list, 9 numbers, an object
     with ``K``/``cam_K`` (BOP), or ``fx``, ``fy``, ``cx``, ``cy``."""
-    path = Path(text)
+    path = checked_path(text, "intrinsics")
     if path.suffix.lower() == ".json" or path.is_file():
         path = _existing(path)
         try:
@@ -235,7 +235,7 @@ def read_pose(path: str | os.PathLike) -> np.ndarray:
 
 
 def _existing(path: str | os.PathLike) -> Path:
-    path = Path(path)
+    path = checked_path(path)
     if not path.is_file():
         raise FileFormatError(f"{path}: no such file")
     return path

@@ -11,13 +11,12 @@ import logging
 import os
 from dataclasses import dataclass, field
 from functools import cached_property
-from pathlib import Path
 from typing import TYPE_CHECKING, Union
 
 import numpy as np
 
 from edgepose import _core
-from edgepose.errors import InvalidModelError, MeshLoadError
+from edgepose.errors import InvalidArgumentError, InvalidModelError, MeshLoadError, checked_path
 
 if TYPE_CHECKING:
     import trimesh
@@ -124,6 +123,8 @@ def load_model(
     """
     import trimesh
 
+    if not isinstance(source, (str, os.PathLike, trimesh.Trimesh)):
+        raise InvalidArgumentError(f"source must be a mesh file path or a trimesh.Trimesh, got {source!r:.80}")
     mesh = source if isinstance(source, trimesh.Trimesh) else read_mesh(source)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces)
@@ -206,7 +207,7 @@ def read_mesh(path: str | os.PathLike, scale: float | None = 1.0) -> trimesh.Tri
     transforms applied."""
     import trimesh
 
-    path = Path(path)
+    path = checked_path(path)
     if not path.is_file():
         raise MeshLoadError(f"{path}: no such file")
     try:

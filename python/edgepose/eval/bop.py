@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from edgepose.errors import EdgePoseError
+from edgepose.errors import EdgePoseError, checked_path
 from edgepose.symmetry import Symmetry, transform_from
 
 BOP_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
@@ -242,7 +242,7 @@ class BopDataset:
     a scene's JSON files when one of its images is first asked for."""
 
     def __init__(self, root: str | os.PathLike, split: str = "test") -> None:
-        self.root = Path(root)
+        self.root = checked_path(root, "root")
         if not self.root.is_dir():
             raise BopDatasetError(f"{self.root}: no such dataset folder")
         self.name = self.root.resolve().name
