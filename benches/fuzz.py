@@ -1,130 +1,165 @@
-"""Long fuzz run of the codebook loader and estimate()'s input path, with the
-strategies and checks of tests/test_fuzz.py (which runs a short, derandomised
-version in CI).
+"""Long fuzz run of every door untrusted input comes through, with the
+strategies and checks of tests/test_fuzz.py (which runs a short,
+derandomised slice of each in CI):
 
-    .venv/bin/python benches/fuzz.py --seconds 600
+- ``load``: damaged codebook files (``Codebook.load``);
+- ``estimate``: clouds of any dtype, shape, layout and damage (``estimate``);
+- ``depth``: depth images, intrinsics, masks and depth scales (``cloud_from_depth``);
+- ``frame``: the same frames given to ``estimate(depth=, K=)``, ``estimate_many``
+  and ``Tracker.update_depth`` beside a good cloud;
+- ``bop``: a one-image BOP folder cut from the real frames, one file damaged
+  (``BopDataset``: models, targets, cameras, annotations, depth, masks).
 
-Every input must give a valid codebook / finite pose or an EdgePoseError; any
-other exception stops the run with hypothesis' minimal failing example, and a
-hang trips the faulthandler watchdog (stack dump, exit). Prints how many
-inputs were tried, the outcomes, and the RSS before and after.
+    .venv/bin/python benches/fuzz.py --cases 1000000 --workers 2
 
-That RSS grows with hypothesis' own bookkeeping: the same strategies with
-no edgepose call grew it by as much (+65 % against +61 % in 300 s,
-2026-11-26). So the leak check is a replay: some of the generated inputs
-are kept, then fed again in a plain loop (``--replay`` passes), and the
-RSS growth over those passes is edgepose's.
+Every input must give a valid result (a whole codebook, finite points, a
+finite rigid pose, a well-formed dataset) or an EdgePoseError; any other
+exception stops the run with hypothesis' minimal failing example, and a hang
+trips the faulthandler watchdog (stack dump, exit 1; armed per batch of
+``--batch`` cases, each a few ms, so a batch past 120 s holds a hang). Depth frames are cut to
+a window around the object (the intrinsics shifted with it) so that a case
+costs milliseconds. Prints the cases per target, their outcomes, the time,
+and each worker's RSS after warm-up and at the end (hypothesis' own
+bookkeeping included: ``benches/soak.py`` measures edgepose's memory).
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
-import copy
-import os
+import multiprocessing
 import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 import edgepose  # noqa: E402
+import numpy as np  # noqa: E402
 import test_fuzz  # noqa: E402
 from edgepose.eval import render_view  # noqa: E402
 from edgepose.model import read_mesh  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
+from soak import rss_mb  # noqa: E402
+
+#: Share of the cases each target gets: the cheap doors most, the ones that run a whole estimate less.
+SHARES = {"depth": 0.45, "bop": 0.2, "load": 0.15, "estimate": 0.12, "frame": 0.08}
+REAL = ROOT.parent / "shared" / "data" / "ycbv_real"
 
 
-def rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+def windowed(view, margin: int = 16) -> SimpleNamespace:
+    """``view`` cut to its mask's bounding box plus ``margin`` pixels, with
+    the principal point moved to match: the same points, a smaller frame."""
+    rows, cols = np.nonzero(view.mask)
+    r0, c0 = max(rows.min() - margin, 0), max(cols.min() - margin, 0)
+    r1, c1 = rows.max() + margin + 1, cols.max() + margin + 1
+    K = view.camera.K.copy()
+    K[0, 2] -= c0
+    K[1, 2] -= r0
+    return SimpleNamespace(
+        depth=np.ascontiguousarray(view.depth[r0:r1, c0:c1]),
+        mask=np.ascontiguousarray(view.mask[r0:r1, c0:c1]),
+        camera=SimpleNamespace(K=K),
+        cloud=view.cloud,
+    )
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=600.0, help="total budget, split between the two targets")
-    parser.add_argument("--mesh", type=Path, default=ROOT.parent / "shared" / "data" / "ycb" / "power_drill.ply")
-    parser.add_argument("--batch", type=int, default=200, help="examples per hypothesis run")
-    parser.add_argument("--keep", type=int, default=200, help="inputs of each target kept for the replay")
-    parser.add_argument("--replay", type=int, default=5, help="passes over the kept inputs (0: no replay)")
-    args = parser.parse_args()
-
-    mesh = read_mesh(args.mesh)
+def run_worker(worker: int, cases: dict[str, int], batch: int, mesh_path: Path) -> dict:
+    """Fuzz each target for its number of cases; returns the outcome tally."""
+    mesh = read_mesh(mesh_path)
     codebook = edgepose.build_codebook(mesh)
-    cloud = render_view(mesh, seed=2).cloud
-    workdir = Path(tempfile.mkdtemp(prefix="edgepose-fuzz-"))
-    codebook.save(workdir / "good.codebook")
-    blob = (workdir / "good.codebook").read_bytes()
-    damaged_path = workdir / "damaged.codebook"
-
-    tally: dict[str, collections.Counter] = {"load": collections.Counter(), "estimate": collections.Counter()}
-    kept: dict[str, list] = {"load": [], "estimate": []}
-
-    def keep(target: str, value: object) -> None:
-        """Keeps the first ``--keep`` inputs (with ``--keep`` <= ``--batch``,
-        all drawn in the warm-up, before the RSS is read)."""
-        if len(kept[target]) < args.keep:
-            kept[target].append(copy.deepcopy(value))
-
-    fuzz = settings(max_examples=args.batch, derandomize=False, **test_fuzz.FUZZ_SETTINGS)
+    view = windowed(render_view(mesh, seed=2 + worker))
+    work = Path(tempfile.mkdtemp(prefix=f"edgepose-fuzz-{worker}-"))
+    codebook.save(work / "good.codebook")
+    blob = (work / "good.codebook").read_bytes()
+    bop_files = test_fuzz.small_bop_folder(REAL, work / "bop_good") if REAL.is_dir() else None
+    tally: dict[str, collections.Counter] = {name: collections.Counter() for name in cases}
+    doors = iter(np.random.default_rng(worker).integers(0, len(test_fuzz.FRAME_DOORS), size=10**8))
+    fuzz = settings(max_examples=batch, derandomize=False, **test_fuzz.FUZZ_SETTINGS)
 
     @fuzz
     @given(damaged=test_fuzz.damaged_codebooks(blob))
-    def fuzz_load(damaged):
-        keep("load", damaged)
-        tally["load"][test_fuzz.check_load(damaged, damaged_path, codebook)] += 1
+    def load(damaged):
+        tally["load"][test_fuzz.check_load(damaged, work / "damaged.codebook", codebook)] += 1
 
     @fuzz
-    @given(value=test_fuzz.estimate_inputs(cloud))
-    def fuzz_estimate(value):
-        keep("estimate", value)
+    @given(value=test_fuzz.estimate_inputs(view.cloud))
+    def estimate(value):
         tally["estimate"][test_fuzz.check_estimate(value, codebook)] += 1
 
-    fuzz_load()  # warm-up: allocator pools, onnxruntime arenas
-    fuzz_estimate()
-    rss_start, t0 = rss_mb(), time.perf_counter()
-    half = t0 + args.seconds / 2
-    while time.perf_counter() < half:
-        fuzz_load()
-    while time.perf_counter() < t0 + args.seconds:
-        fuzz_estimate()
-    elapsed, rss_end = time.perf_counter() - t0, rss_mb()
+    @fuzz
+    @given(value=test_fuzz.frame_inputs(view))
+    def depth(value):
+        tally["depth"][test_fuzz.check_cloud_from_depth(value)] += 1
 
-    for target, counts in tally.items():
-        total = sum(counts.values())
-        print(f"{target}: {total} inputs, " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
+    @fuzz
+    @given(value=test_fuzz.frame_inputs(view))
+    def frame(value):
+        door = test_fuzz.FRAME_DOORS[next(doors)]
+        tally["frame"][f"{door}: {test_fuzz.check_frame(value, door, view.cloud, codebook)}"] += 1
+
+    @fuzz
+    @given(damaged=test_fuzz.damaged_bop_files(bop_files or {}))
+    def bop(damaged):
+        test_fuzz.write_bop_folder(work / "bop", damaged)
+        tally["bop"][test_fuzz.check_bop(work / "bop")] += 1
+
+    runs = {"load": load, "estimate": estimate, "depth": depth, "frame": frame, "bop": bop}
+    if bop_files is None:
+        cases = {name: n for name, n in cases.items() if name != "bop"}
+    rss_start = None
+    seconds: dict[str, float] = {}
+    for name, wanted in cases.items():
+        t0 = time.perf_counter()
+        while sum(tally[name].values()) < wanted:
+            with test_fuzz.watchdog():  # per batch: a case that hangs keeps its batch past WATCHDOG_S
+                runs[name]()
+            if rss_start is None:
+                rss_start = rss_mb()  # after the first batch: allocator pools, onnxruntime arenas
+        seconds[name] = time.perf_counter() - t0
+        done = sum(tally[name].values())
+        print(f"worker {worker}: {name} {done} cases in {seconds[name]:.0f} s", flush=True)
+    return {"tally": tally, "seconds": seconds, "rss": (rss_start, rss_mb())}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cases", type=int, default=1_000_000, help="total cases, split by SHARES and workers")
+    parser.add_argument("--workers", type=int, default=2, help="processes, each with its own seed and view")
+    parser.add_argument("--only", default=None, help="comma-separated targets (default: all)")
+    parser.add_argument("--batch", type=int, default=500, help="examples per hypothesis run")
+    parser.add_argument("--mesh", type=Path, default=ROOT / "codebooks" / "power_drill.ply")
+    args = parser.parse_args()
+    names = args.only.split(",") if args.only else list(SHARES)
+    share = sum(SHARES[n] for n in names)
+    per_worker = {n: max(1, round(args.cases * SHARES[n] / share / args.workers)) for n in names}
+    t0 = time.perf_counter()
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        results = pool.starmap(run_worker, [(w, per_worker, args.batch, args.mesh) for w in range(args.workers)])
+    elapsed = time.perf_counter() - t0
+    total: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+    busy: dict[str, float] = collections.defaultdict(float)
+    for result in results:
+        for name, counts in result["tally"].items():
+            total[name].update(counts)
+        for name, s in result["seconds"].items():
+            busy[name] += s
     print(
-        f"{elapsed:.0f} s, zero failures; RSS after warm-up {rss_start:.1f} MB, at end {rss_end:.1f} MB "
-        f"({100 * (rss_end - rss_start) / rss_start:+.1f} %; hypothesis' bookkeeping included)"
+        f"\n{sum(sum(c.values()) for c in total.values())} cases in {elapsed / 60:.1f} min "
+        f"({args.workers} workers), zero failures, zero hangs"
     )
-    if args.replay > 0:
-        replay(kept, damaged_path, codebook, args.replay)
-
-
-def replay(kept: dict[str, list], damaged_path: Path, codebook: edgepose.Codebook, passes: int) -> None:
-    """Feeds the kept inputs again, ``passes`` times, in a plain loop; the
-    first pass warms up, the RSS growth over the others is edgepose's."""
-
-    def one_pass() -> None:
-        for damaged in kept["load"]:
-            test_fuzz.check_load(damaged, damaged_path, codebook)
-        for value in kept["estimate"]:
-            test_fuzz.check_estimate(value, codebook)
-
-    one_pass()
-    rss_start = rss_mb()
-    for _ in range(passes - 1):
-        one_pass()
-    rss_end = rss_mb()
-    calls = (passes - 1) * (len(kept["load"]) + len(kept["estimate"]))
-    print(
-        f"replay: {len(kept['load'])} codebooks and {len(kept['estimate'])} estimate inputs, "
-        f"{passes} passes in a plain loop; RSS over the last {passes - 1} ({calls} calls): "
-        f"{rss_start:.1f} -> {rss_end:.1f} MB ({rss_end - rss_start:+.1f} MB)"
-    )
+    for name, counts in total.items():
+        n = sum(counts.values())
+        rate = 1e3 * busy[name] / max(n, 1)
+        print(f"  {name}: {n} cases, {rate:.2f} ms each; " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
+    for w, result in enumerate(results):
+        start, end = result["rss"]
+        print(f"  worker {w}: RSS after the first batch {start:.0f} MB, at end {end:.0f} MB")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

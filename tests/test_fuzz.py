@@ -38,13 +38,25 @@ FUZZ_SETTINGS = dict(
 )
 
 
+_armed = False
+
+
 @contextmanager
 def watchdog():
+    """Dump every thread's stack and exit if the block takes over
+    :data:`WATCHDOG_S`. Inside an armed watchdog (the long run arms one per
+    batch: arming costs ~1 ms) it adds nothing."""
+    global _armed
+    if _armed:
+        yield
+        return
     faulthandler.dump_traceback_later(WATCHDOG_S, exit=True)
+    _armed = True
     try:
         yield
     finally:
         faulthandler.cancel_dump_traceback_later()
+        _armed = False
 
 
 # --- codebook loader -----------------------------------------------------------------
@@ -107,12 +119,19 @@ _ANY_DTYPE = hnp.scalar_dtypes() | hnp.byte_string_dtypes() | hnp.unicode_string
 
 @st.composite
 def random_arrays(draw) -> np.ndarray:
-    """Arrays of any dtype and shape, mostly (N, 3), with any values."""
+    """Arrays of any dtype and shape, mostly (N, 3), with any values: drawn
+    element by element (small arrays: hypothesis' edge values, 0, NaN, inf)
+    or as random bits (any size, fast)."""
     dtype = draw(_ANY_DTYPE)
-    shape = draw(st.tuples(st.integers(0, 400), st.just(3)) | hnp.array_shapes(min_dims=0, max_dims=3, max_side=40))
     if dtype == np.dtype(object):
+        shape = draw(hnp.array_shapes(min_dims=0, max_dims=3, max_side=8))
         return np.full(shape, draw(st.none() | st.floats() | st.text(max_size=3)), dtype=object)
-    return draw(hnp.arrays(dtype, shape))
+    if draw(st.booleans()):
+        shape = draw(st.tuples(st.integers(0, 40), st.just(3)) | hnp.array_shapes(min_dims=0, max_dims=3, max_side=8))
+        return draw(hnp.arrays(dtype, shape))
+    shape = draw(st.tuples(st.integers(0, 4000), st.just(3)) | hnp.array_shapes(min_dims=0, max_dims=3, max_side=40))
+    bits = np.random.default_rng(draw(st.integers(0, 2**32 - 1))).bytes(int(np.prod(shape)) * dtype.itemsize)
+    return np.frombuffer(bits, dtype=dtype).reshape(shape).copy()
 
 
 @st.composite
@@ -168,6 +187,251 @@ def check_estimate(cloud: object, codebook: edgepose.Codebook) -> str:
     return "pose"
 
 
+# --- depth frames, masks and intrinsics ----------------------------------------------
+
+_NUMBERS = st.floats(allow_nan=True, allow_infinity=True) | st.integers(-(2**40), 2**40)
+_ODD_VALUES = st.none() | st.text(max_size=4) | st.booleans() | _NUMBERS | st.lists(_NUMBERS, max_size=10)
+
+
+@st.composite
+def damaged_depths(draw, depth: np.ndarray) -> object:
+    """A rendered depth image (float metres), damaged: holes, NaN/inf/negative
+    patches, another dtype or unit, cropped, reshaped, or replaced."""
+    kind = draw(st.sampled_from(["as_is", "patch", "dtype", "crop", "shape", "random", "odd"]))
+    image = depth.copy()
+    if kind == "patch":
+        for _ in range(draw(st.integers(1, 4))):
+            r, c = draw(st.integers(0, image.shape[0] - 1)), draw(st.integers(0, image.shape[1] - 1))
+            h, w = draw(st.integers(1, 200)), draw(st.integers(1, 200))
+            image[r : r + h, c : c + w] = draw(st.sampled_from([np.nan, np.inf, -np.inf, 0.0, -1.0, 1e30, 1e-9]))
+    elif kind == "dtype":
+        dtype = draw(st.sampled_from([np.uint16, np.int32, np.uint8, np.float16, np.int8, np.bool_, np.complex64]))
+        with np.errstate(all="ignore"):
+            image = (image * draw(st.sampled_from([1.0, 1000.0, 1e6]))).astype(dtype)
+    elif kind == "crop":
+        r, c = draw(st.integers(0, image.shape[0])), draw(st.integers(0, image.shape[1]))
+        image = image[r : r + draw(st.integers(0, 300)), c : c + draw(st.integers(0, 300))]
+    elif kind == "shape":
+        image = draw(st.sampled_from([image[None], image[..., None], image.ravel(), image[:0], image.T]))
+    elif kind == "random":
+        return draw(random_arrays())
+    elif kind == "odd":
+        return draw(_ODD_VALUES)
+    return image
+
+
+@st.composite
+def damaged_intrinsics(draw, K: np.ndarray) -> object:
+    """A pinhole matrix, perturbed, degenerate, non-finite, reshaped or not a matrix."""
+    kind = draw(st.sampled_from(["as_is", "entry", "scaled", "shape", "odd"]))
+    if kind == "as_is":
+        return K
+    if kind == "entry":
+        bad = K.copy()
+        bad.flat[draw(st.integers(0, 8))] = draw(_NUMBERS.map(float))
+        return bad
+    if kind == "scaled":
+        return K * draw(st.floats(-1e3, 1e3))
+    if kind == "shape":
+        return draw(st.sampled_from([K.ravel(), K[:2], K.tolist(), K.ravel()[:8], np.eye(4), K.astype(np.float16)]))
+    return draw(_ODD_VALUES)
+
+
+@st.composite
+def damaged_masks(draw, mask: np.ndarray) -> object:
+    """An object mask, grown, moved, emptied, full, of another dtype or shape."""
+    kind = draw(st.sampled_from(["as_is", "none", "empty", "full", "shifted", "dtype", "shape", "odd"]))
+    if kind == "none":
+        return None
+    if kind == "empty":
+        return np.zeros_like(mask)
+    if kind == "full":
+        return np.ones_like(mask)
+    if kind == "shifted":
+        return np.roll(mask, (draw(st.integers(-300, 300)), draw(st.integers(-300, 300))), axis=(0, 1))
+    if kind == "dtype":
+        return mask.astype(draw(st.sampled_from([np.uint8, np.int64, np.float32, np.float64, object])))
+    if kind == "shape":
+        return draw(st.sampled_from([mask[1:], mask[:, :-1], mask[None], mask.ravel()]))
+    if kind == "odd":
+        return draw(_ODD_VALUES)
+    return mask
+
+
+@st.composite
+def frame_inputs(draw, view) -> tuple:
+    """``(depth, K, mask, depth_scale)`` of a rendered view (float metres):
+    mostly one of them damaged and the others whole, so that the damage
+    reaches past the first check; sometimes all, sometimes none."""
+    damaged = draw(st.sampled_from(["depth", "K", "mask", "depth_scale", "all", "none"]))
+    return (
+        draw(damaged_depths(view.depth)) if damaged in ("depth", "all") else view.depth,
+        draw(damaged_intrinsics(view.camera.K)) if damaged in ("K", "all") else view.camera.K,
+        draw(damaged_masks(view.mask)) if damaged in ("mask", "all") else view.mask,
+        draw(st.sampled_from([1.0, 1000.0]) | _ODD_VALUES) if damaged in ("depth_scale", "all") else 1.0,
+    )
+
+
+def check_cloud_from_depth(value: tuple) -> str:
+    """(N, 3) finite points in front of the camera, or an EdgePoseError."""
+    depth, K, mask, depth_scale = value
+    with watchdog():
+        try:
+            cloud = edgepose.cloud_from_depth(depth, K, mask, depth_scale=depth_scale)
+        except edgepose.EdgePoseError as e:
+            return type(e).__name__
+    assert cloud.ndim == 2 and cloud.shape[1] == 3 and cloud.dtype == np.float64
+    assert np.isfinite(cloud).all() and (cloud[:, 2] > 0).all()
+    return "points"
+
+
+FRAME_DOORS = ("estimate", "estimate_many", "Tracker.update_depth")
+
+
+def check_frame(value: tuple, door: str, cloud: np.ndarray, codebook: edgepose.Codebook) -> str:
+    """A (damaged) frame at one of the :data:`FRAME_DOORS`, beside the view's
+    own good ``cloud``: a finite pose, or an EdgePoseError (returned by
+    ``estimate_many`` per object, or raised)."""
+    depth, K, mask, depth_scale = value
+    with watchdog():
+        try:
+            if door == "estimate":
+                poses = [edgepose.estimate(cloud, codebook, depth=depth, K=K, depth_scale=depth_scale)]
+            elif door == "estimate_many":
+                frame = edgepose.estimate_many(depth, K, [(mask, codebook)] * 2, depth_scale=depth_scale, workers=1)
+                if any(e is not None and not isinstance(e, edgepose.EdgePoseError) for e in frame.errors):
+                    raise AssertionError(f"untyped error {frame.errors}")
+                poses = [p for p in frame.poses if p is not None]
+                if not poses:
+                    return "errors per object"
+            else:
+                poses = [edgepose.Tracker(codebook).update_depth(depth, K, mask, depth_scale)]
+        except edgepose.EdgePoseError as e:
+            return type(e).__name__
+    for pose in poses:
+        assert np.isfinite(pose.matrix).all() and np.isfinite(pose.fit)
+        np.testing.assert_allclose(pose.R @ pose.R.T, np.eye(3), atol=1e-6)
+    return "pose"
+
+
+# --- BOP folders ---------------------------------------------------------------------
+
+#: The files of a one-image BOP folder (relative to its root) the damage picks from.
+BOP_FILES = (
+    "models/models_info.json",
+    "test/000000/scene_camera.json",
+    "test/000000/scene_gt.json",
+    "test/000000/scene_gt_info.json",
+    "test_targets_bop19.json",
+    "test/000000/depth/000001.png",
+    "test/000000/mask_visib/000001_000000.png",
+)
+
+
+def small_bop_folder(real: Path, root: Path) -> dict[str, bytes]:
+    """A one-image, one-object BOP folder at ``root`` cut from the real
+    dataset ``real`` (scene 0, its first image, the first annotated object);
+    returns each of :data:`BOP_FILES`' bytes."""
+    import json
+
+    scene = real / "test" / "000000"
+    im = min(json.loads((scene / "scene_camera.json").read_text()), key=int)
+    gt = json.loads((scene / "scene_gt.json").read_text())[im][0]
+    info = json.loads((scene / "scene_gt_info.json").read_text())[im][0]
+    camera = json.loads((scene / "scene_camera.json").read_text())[im]
+    models = json.loads((real / "models" / "models_info.json").read_text())
+    texts = {
+        "models/models_info.json": json.dumps({str(gt["obj_id"]): models[str(gt["obj_id"])]}),
+        "test/000000/scene_camera.json": json.dumps({"1": camera}),
+        "test/000000/scene_gt.json": json.dumps({"1": [gt]}),
+        "test/000000/scene_gt_info.json": json.dumps({"1": [info]}),
+        "test_targets_bop19.json": json.dumps([{"scene_id": 0, "im_id": 1, "obj_id": gt["obj_id"], "inst_count": 1}]),
+    }
+    files = {name: text.encode() for name, text in texts.items()}
+    files["test/000000/depth/000001.png"] = (scene / "depth" / f"{int(im):06d}.png").read_bytes()
+    files["test/000000/mask_visib/000001_000000.png"] = (
+        scene / "mask_visib" / f"{int(im):06d}_000000.png"
+    ).read_bytes()
+    write_bop_folder(root, files)
+    return files
+
+
+def write_bop_folder(root: Path, files: dict[str, bytes | None]) -> None:
+    for name, data in files.items():
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if data is None:
+            path.unlink(missing_ok=True)
+        else:
+            path.write_bytes(data)
+
+
+@st.composite
+def damaged_bop_files(draw, files: dict[str, bytes]) -> dict[str, bytes | None]:
+    """The folder's files with one damaged: a JSON value replaced, a key
+    dropped, the text truncated or spliced, the file removed or junk."""
+    import json
+
+    name = draw(st.sampled_from(BOP_FILES))
+    data = files[name]
+    kind = draw(st.sampled_from(["value", "drop", "truncate", "flip", "remove", "junk"]))
+    if kind in ("value", "drop") and name.endswith(".json"):
+        value = json.loads(data)
+        holder, key = value, None
+        while isinstance(holder, (dict, list)) and holder and draw(st.booleans()) is False:
+            key = draw(st.sampled_from(sorted(holder) if isinstance(holder, dict) else list(range(len(holder)))))
+            if not isinstance(holder[key], (dict, list)) or not holder[key]:
+                break
+            holder = holder[key]
+        if isinstance(holder, (dict, list)) and holder:
+            key = draw(st.sampled_from(sorted(holder) if isinstance(holder, dict) else list(range(len(holder)))))
+            if kind == "drop":
+                del holder[key]
+            else:
+                odd = st.none() | st.booleans() | _NUMBERS | st.text(max_size=6) | st.lists(_NUMBERS, max_size=17)
+                holder[key] = draw(odd | st.dictionaries(st.text(max_size=3), _NUMBERS, max_size=3))
+        else:
+            value = draw(st.none() | _NUMBERS | st.text(max_size=6))
+        data = json.dumps(value).encode()
+    elif kind == "truncate":
+        data = data[: draw(st.integers(0, max(len(data) - 1, 0)))]
+    elif kind == "flip":
+        damaged = bytearray(data)
+        for _ in range(draw(st.integers(1, 8))):
+            damaged[draw(st.integers(0, len(damaged) - 1))] ^= 1 << draw(st.integers(0, 7))
+        data = bytes(damaged)
+    elif kind == "remove":
+        return {**files, name: None}
+    else:
+        data = draw(st.binary(max_size=256))
+    return {**files, name: data}
+
+
+def check_bop(root: Path) -> str:
+    """Read every part of the folder a BOP run reads: a BopDatasetError (or
+    another EdgePoseError), or well-formed objects, targets, cameras, poses,
+    depth and masks."""
+    from edgepose.eval.bop import BopDataset
+
+    with watchdog():
+        try:
+            dataset = BopDataset(root)
+            objects = dataset.objects
+            targets = dataset.targets()
+            for target in targets:
+                image = dataset.image(target.scene_id, target.im_id)
+                depth = image.depth()
+                for gt in image.gts:
+                    mask = image.mask(gt.gt_id)
+                    assert mask.dtype == np.bool_ and mask.ndim == 2
+                    assert gt.matrix.shape == (4, 4)
+                assert depth.ndim == 2 and image.K.shape == (3, 3)
+        except edgepose.EdgePoseError as e:
+            return type(e).__name__
+    assert all(o.diameter == o.diameter for o in objects.values())
+    return "read"
+
+
 # --- the CI run ----------------------------------------------------------------------
 
 
@@ -197,5 +461,45 @@ def test_fuzz_estimate_input(drill):
     @given(value=estimate_inputs(cloud))
     def run(value):
         check_estimate(value, codebook)
+
+    run()
+
+
+@pytest.fixture(scope="module")
+def view(drill):
+    return render_view(drill[0], seed=2)
+
+
+def test_fuzz_cloud_from_depth(view):
+    @settings(max_examples=EXAMPLES, derandomize=True, **FUZZ_SETTINGS)
+    @given(value=frame_inputs(view))
+    def run(value):
+        check_cloud_from_depth(value)
+
+    run()
+
+
+@pytest.mark.parametrize("door", FRAME_DOORS)
+def test_fuzz_frame_doors(drill, view, door):
+    @settings(max_examples=max(EXAMPLES // 3, 10), derandomize=True, **FUZZ_SETTINGS)
+    @given(value=frame_inputs(view))
+    def run(value):
+        check_frame(value, door, view.cloud, drill[1])
+
+    run()
+
+
+def test_fuzz_bop_folder(tmp_path):
+    real = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_real"
+    if not real.is_dir():
+        pytest.skip(f"{real}: the real frames are not here")
+    files = small_bop_folder(real, tmp_path / "good")
+    assert check_bop(tmp_path / "good") == "read"
+
+    @settings(max_examples=EXAMPLES, derandomize=True, **FUZZ_SETTINGS)
+    @given(damaged=damaged_bop_files(files))
+    def run(damaged):
+        write_bop_folder(tmp_path / "bop", damaged)
+        check_bop(tmp_path / "bop")
 
     run()
