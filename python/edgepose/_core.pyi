@@ -147,6 +147,7 @@ class DepthGrid:
         scene_depth: npt.NDArray[np.float32] | None = None,
         scene_camera: tuple[float, float, float, float] | None = None,
         scene_radius: int = 2,
+        edge_slack: bool = False,
     ) -> None: ...
 
 class ModelIndex:

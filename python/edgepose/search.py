@@ -37,6 +37,7 @@ from edgepose.stages import (
     nearest_views,
     pair_poses,
     refine_hypotheses,
+    rim_tolerant_violation,
     score_poses,
     turned_pose,
 )
@@ -175,7 +176,9 @@ def doubtful(
     """Whether a search's pose (model frame → camera) is worth a second,
     wider search: not refined, or explaining too few of the hypotheses'
     observed points within ``settings.doubt_inlier_distance``, or
-    contradicting free space (``loose``: its :func:`loose_scores`, if known).
+    contradicting free space even with a cell of slack at the silhouette's
+    edge (:func:`rim_tolerant_violation`), or the scene (``loose``: its
+    :func:`loose_scores`, if known).
     :func:`estimate` also searches again when the pose's confidence is below
     ``settings.retry_below_confidence``."""
     if not result.refined:
@@ -183,8 +186,12 @@ def doubtful(
     scores = loose or loose_scores(query, codebook, result, settings)
     return bool(
         scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
-        or scores.free_space_violation[0] > settings.retry_above_free_space
         or scores.scene_violation[0] > settings.retry_above_scene_violation
+        # The slack only lowers the violation: it is worked out only when it could matter.
+        or (
+            scores.free_space_violation[0] > settings.retry_above_free_space
+            and rim_tolerant_violation(query, codebook, result.R, result.t, settings) > settings.retry_above_free_space
+        )
     )
 
 

@@ -133,7 +133,8 @@ class EstimateSettings:
     depth noise at range (σ 3 mm at 1.5 m) does not make a correct pose doubtful."""
     retry_above_free_space: float = 0.03
     """... as is one violating free space (a fraction 0–1 of its
-    camera-facing model points) more than this. A doubtful pose is searched
+    camera-facing model points, one grid cell of slack at the silhouette's
+    edge: ``stages.rim_tolerant_violation``) more than this. A doubtful pose is searched
     again: ``pair_poses`` poses voted for by point pairs (and ``retry_k``
     candidates down the cosine ranking) join the first search's candidates,
     ``retry_hypotheses`` of them are refined, and the result that explains

@@ -68,6 +68,13 @@ class Query:
         return _core.DepthGrid(self.points, self.spacing, self.scene.depth, self.scene.camera, self.scene.radius)
 
     @cached_property
+    def rim_tolerant_free_space(self) -> _core.DepthGrid:
+        """:attr:`free_space` (without the scene) whose cells at the edge of
+        the observed silhouette read the nearest depth within one cell: what
+        the doubt's free-space test reads (:func:`rim_tolerant_violation`)."""
+        return _core.DepthGrid(self.points, self.spacing, edge_slack=True)
+
+    @cached_property
     def median_depth(self) -> float:
         """Median z of ``points``, metres: the depth the sensor's noise is read at."""
         return float(np.median(self.points[:, 2]))
@@ -464,6 +471,27 @@ def score_poses(
     )
     cost = fit / inlier_distance + free_space_weight * (violation + scene)
     return PoseScores(fit, inliers, violation, cost, off_silhouette, constraint, scene)
+
+
+def rim_tolerant_violation(
+    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
+) -> float:
+    """The free-space violation (0–1) of one pose (model frame → camera)
+    with one grid cell of slack at the silhouette's edge
+    (:attr:`Query.rim_tolerant_free_space`). A real sensor's silhouette is a
+    pixel or two off the object (depth and mask registered apart, mixed
+    depth at the edge), so a right pose's rim stands just in front of the
+    edge cells: that alone must not make it doubtful."""
+    violation = codebook.index.score(
+        query.points[:1],
+        query.rim_tolerant_free_space,
+        np.ascontiguousarray(R[None], dtype=np.float64),
+        np.ascontiguousarray(t[None], dtype=np.float64),
+        settings.hypothesis_inlier_distance * codebook.model.diameter,
+        free_space_tolerance(query, codebook.model.diameter, settings),
+        settings.free_space_model_stride,
+    )[2]
+    return float(violation[0])
 
 
 class Refined(NamedTuple):

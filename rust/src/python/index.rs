@@ -42,7 +42,9 @@ fn cloud_triples<'a>(array: &'a PyReadonlyArray2<'_, f32>, name: &str) -> PyResu
 /// ((H, W) float32 metres, 0: none; the frame around the object) and
 /// `scene_camera` (fx, fy, cx, cy of those pixels), scoring also tests the
 /// model points off the object's silhouette against the scene, each pixel
-/// read as the nearest depth within `scene_radius` pixels. Immutable.
+/// read as the nearest depth within `scene_radius` pixels. With
+/// `edge_slack`, the silhouette's edge cells read the nearest depth within
+/// one cell (the doubt's test: a real sensor's rim). Immutable.
 #[pyclass(frozen, name = "DepthGrid", module = "edgepose._core")]
 pub struct PyDepthGrid {
     inner: Arc<DepthGrid>,
@@ -51,7 +53,7 @@ pub struct PyDepthGrid {
 #[pymethods]
 impl PyDepthGrid {
     #[new]
-    #[pyo3(signature = (cloud, spacing, scene_depth=None, scene_camera=None, scene_radius=2))]
+    #[pyo3(signature = (cloud, spacing, scene_depth=None, scene_camera=None, scene_radius=2, edge_slack=false))]
     fn new(
         py: Python<'_>,
         cloud: PyReadonlyArray2<'_, f32>,
@@ -59,6 +61,7 @@ impl PyDepthGrid {
         scene_depth: Option<PyReadonlyArray2<'_, f32>>,
         scene_camera: Option<[f64; 4]>,
         scene_radius: usize,
+        edge_slack: bool,
     ) -> PyResult<Self> {
         guarded(|| {
             let c = cloud_triples(&cloud, "cloud")?;
@@ -92,6 +95,11 @@ impl PyDepthGrid {
             Ok(Self {
                 inner: Arc::new(py.detach(|| {
                     let grid = DepthGrid::new(c, spacing, 2.0);
+                    let grid = if edge_slack {
+                        grid.with_edge_slack()
+                    } else {
+                        grid
+                    };
                     match scene {
                         Some((pixels, width, camera)) => {
                             grid.with_scene(SceneDepth::new(pixels, width, camera, scene_radius))
