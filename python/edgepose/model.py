@@ -92,6 +92,13 @@ class StandardModel:
         return 1.0 / self.scale
 
     @cached_property
+    def box_corners(self) -> np.ndarray:
+        """(8, 3) float64 corners of the points' axis-aligned bounding box,
+        model frame, metres: a posed model projects within theirs."""
+        lo, hi = self.points.min(axis=0).astype(np.float64), self.points.max(axis=0).astype(np.float64)
+        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+    @cached_property
     def principal_axes(self) -> tuple[np.ndarray, np.ndarray]:
         """The points' centroid (3,) and their principal axes (3, 3), one per
         column, model frame: the axes an elongated or flat object is most

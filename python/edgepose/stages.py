@@ -24,7 +24,7 @@ the model's centre); units are metres. Every tuning value lives in
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -144,10 +144,34 @@ def scene_around(
     (metres) near its observed ``points`` (camera frame) can project into:
     their pixel bounding box grown by ``SCENE_MARGIN`` × the diameter's size
     in pixels at their nearest depth."""
+    grow = SCENE_MARGIN * diameter / max(float(points[:, 2].min()), 1e-6)
+    return _scene_window(depth, K, depth_scale, points, grow * float(K[0, 0]), grow * float(K[1, 1]))
+
+
+def scene_of_pose(
+    depth: np.ndarray, K: np.ndarray, depth_scale: float, codebook: Codebook, R: np.ndarray, t: np.ndarray
+) -> SceneDepth | None:
+    """The window of a checked ``depth`` image that one pose (model frame →
+    camera) of ``codebook``'s object projects into: its bounding box's
+    eight corners projected, grown by the scene test's pixel radius; None
+    when a corner is not in front of the camera. The tracker's window: its
+    pose is known before the scene is read, so the window need not cover
+    every pose a search might keep (:func:`scene_around`)."""
+    corners = codebook.model.box_corners @ R.T + t
+    if corners[:, 2].min() <= 1e-6:
+        return None
+    grow = SceneDepth.radius + 1
+    return _scene_window(depth, K, depth_scale, corners, grow, grow)
+
+
+def _scene_window(
+    depth: np.ndarray, K: np.ndarray, depth_scale: float, points: np.ndarray, grow_u: float, grow_v: float
+) -> SceneDepth:
+    """The window of ``depth`` over the pixel bounding box of ``points``
+    (camera frame, in front of it), grown by ``grow_u`` and ``grow_v`` pixels."""
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
     z = np.maximum(points[:, 2], 1e-6)
     u, v = fx * points[:, 0] / z + cx, fy * points[:, 1] / z + cy
-    grow_u, grow_v = (f * SCENE_MARGIN * diameter / z.min() for f in (fx, fy))
     h, w = depth.shape
     c0, c1 = int(max(u.min() - grow_u, 0)), int(min(u.max() + grow_u + 1, w))
     r0, r1 = int(max(v.min() - grow_v, 0)), int(min(v.max() + grow_v + 1, h))
@@ -800,8 +824,17 @@ def near_the_cloud(
 def subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
     """At most ``count`` of ``points``, drawn without replacement (seeded), C-contiguous."""
     if len(points) > count:
-        points = points[np.random.default_rng(seed).choice(len(points), count, replace=False)]
+        points = points[_drawn(len(points), count, seed)]
     return np.ascontiguousarray(points)
+
+
+@lru_cache(maxsize=256)
+def _drawn(n: int, count: int, seed: int) -> np.ndarray:
+    """The indices :func:`subsample` takes: the same for the same sizes and
+    seed, so a tracker's frames of similar size draw them once."""
+    drawn = np.random.default_rng(seed).choice(n, count, replace=False)
+    drawn.flags.writeable = False
+    return drawn
 
 
 def distinct_hypotheses(rotations: np.ndarray, order: np.ndarray, count: int, min_angle_deg: float) -> np.ndarray:

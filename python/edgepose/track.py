@@ -36,7 +36,15 @@ from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.pose import Pose, check_types, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
-from edgepose.stages import Query, near_the_cloud, off_support_plane, scene_around, score_poses, subsample
+from edgepose.stages import (
+    Query,
+    near_the_cloud,
+    off_support_plane,
+    scene_around,
+    scene_of_pose,
+    score_poses,
+    subsample,
+)
 from edgepose.views import rotation_about, rotation_angle
 
 
@@ -176,7 +184,7 @@ class Tracker:
             t = t + track.velocity * (t - (prev.t + prev.R @ model.centre))
         icp = codebook.index.refine(points, R[None], t[None], track.icp_iterations, track.icp_max_distance * d)
         R, t = icp.rotations[0], icp.translations[0]
-        scene = None if frame is None else scene_around(*frame, seen, d)
+        scene = None if frame is None else scene_of_pose(*frame, codebook, R, t) or scene_around(*frame, seen, d)
         query = Query(seen, _spacing(seen), seen.mean(axis=0, dtype=np.float64), np.eye(3), seen[:0], seen[:0], scene)
         scores = score_poses(query, codebook, points, R[None], t[None], track.inlier_distance * d, 0.0, self.settings)
         tight = score_poses(
