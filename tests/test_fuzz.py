@@ -356,14 +356,22 @@ def small_bop_folder(real: Path, root: Path) -> dict[str, bytes]:
     return files
 
 
+_written: dict[Path, bytes | None] = {}
+
+
 def write_bop_folder(root: Path, files: dict[str, bytes | None]) -> None:
+    """Make ``root`` hold ``files`` (None: absent), writing only the files
+    that differ from what this process last wrote there."""
     for name, data in files.items():
         path = root / name
+        if path in _written and _written[path] is data:
+            continue
         path.parent.mkdir(parents=True, exist_ok=True)
         if data is None:
             path.unlink(missing_ok=True)
         else:
             path.write_bytes(data)
+        _written[path] = data
 
 
 @st.composite

@@ -431,3 +431,13 @@ def test_masks_are_bool_or_integer_and_a_float_map_is_refused(drill):
     _, codebook = drill
     with pytest.raises(edgepose.InvalidCloudError, match="mask must be bool or integer"):
         edgepose.estimate_many(depth, K, [(mask.astype(np.float64), codebook)])
+
+
+def test_absurd_intrinsics_never_give_non_finite_points():
+    # Found by benches/fuzz.py: a focal length and depth scale of 5e-266 pass
+    # the pinhole check, and the points they made overflowed to inf.
+    depth = np.full((4, 5), 0.8, np.float32)
+    K = [[5.4e-266, 0, -0.7], [0, 573.6, 2], [0, 0, 1]]
+    cloud = edgepose.cloud_from_depth(depth, K, depth_scale=5.4e-266)
+    assert np.isfinite(cloud).all()
+    assert len(cloud) <= 4  # only the column over the principal point (x = 0) is finite, if any

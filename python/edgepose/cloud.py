@@ -83,7 +83,8 @@ def clean_cloud(cloud: object, diameter: float, max_points: int) -> np.ndarray:
     cloud is never copied whole (others are converted to float64 first)."""
     array = _rows_of_numbers(cloud)
     if array.dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
-        array = array.astype(np.float64)  # integers, float16, other byte orders: the same draw
+        with np.errstate(invalid="ignore", over="ignore"):  # what does not convert is not finite: dropped
+            array = array.astype(np.float64)  # integers, float16, other byte orders: the same draw
     return _core.clean_cloud(
         array,
         diameter,

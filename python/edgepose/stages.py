@@ -175,7 +175,8 @@ def _scene_window(
     h, w = depth.shape
     c0, c1 = int(max(u.min() - grow_u, 0)), int(min(u.max() + grow_u + 1, w))
     r0, r1 = int(max(v.min() - grow_v, 0)), int(min(v.max() + grow_v + 1, h))
-    window = np.divide(depth[r0:r1, c0:c1], depth_scale, dtype=np.float32)  # the core reads NaN, inf, ≤ 0 as none
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # the core reads NaN, inf, ≤ 0 as none
+        window = np.divide(depth[r0:r1, c0:c1], depth_scale, dtype=np.float32)
     return SceneDepth(window, (fx, fy, cx - c0, cy - r0))
 
 

@@ -297,11 +297,19 @@ impl Grid {
         let volume: f64 = (0..3)
             .map(|a| (hi[a] - lo[a]) as f64 + 2.0 * margin + cell as f64)
             .product();
-        let cell = cell.max((volume / max_cells).cbrt() as f32).max(1e-6);
+        let mut cell = cell.max((volume / max_cells).cbrt() as f32).max(1e-6);
         let origin = lo.map(|v| v - margin as f32);
-        let dims = std::array::from_fn(|a| {
-            ((hi[a] - origin[a]) as f64 + margin).div_euclid(cell as f64) as i32 + 1
-        });
+        let cells_along = |cell: f32, a: usize| {
+            ((hi[a] - origin[a]) as f64 + margin).div_euclid(cell as f64) + 1.0
+        };
+        // The volume bounds the count for a cube-like box only: a flat or
+        // thin one (a degenerate cloud) needs larger cells to stay within it.
+        while (0..3).map(|a| cells_along(cell, a)).product::<f64>() > 2.0 * max_cells
+            && cell.is_finite()
+        {
+            cell *= 1.25;
+        }
+        let dims = std::array::from_fn(|a| cells_along(cell, a).max(1.0) as i32);
         Self { origin, cell, dims }
     }
 
@@ -595,4 +603,33 @@ fn squared(a: &[f32; 3], b: &[f32; 3]) -> f32 {
         d += (a[k] - b[k]) * (a[k] - b[k]);
     }
     d
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_flat_or_thin_box_stays_within_the_cell_budget() {
+        // Found by fuzzing: points 7 cm × 16 mm across but ~0 thick, with a
+        // requested cell of ~0, asked for ~10^14 cells (an abort on allocation).
+        let budget = 4096.0;
+        for (hi, cell) in [
+            ([0.07, 0.016, 1e-30], 1e-30),
+            ([1.0, 1e-30, 1e-30], 1e-30),
+            ([1e5, 1e5, 0.0], 1e-6),
+            ([1.0, 1.0, 1.0], 1e-3),
+        ] {
+            let grid = Grid::new([0.0; 3], hi, cell, 0.0, budget);
+            assert!(grid.dims.iter().all(|&d| d >= 1), "{hi:?}: {:?}", grid.dims);
+            assert!(
+                grid.count() as f64 <= 2.0 * budget,
+                "{hi:?}: {:?}",
+                grid.dims
+            );
+        }
+        // Not finite: one cell, every point outside.
+        let grid = Grid::new([0.0; 3], [f32::INFINITY, 1.0, 1.0], 0.01, 0.0, budget);
+        assert!(grid.count() <= 2 * budget as usize);
+    }
 }

@@ -37,8 +37,9 @@ pub struct Pinhole {
 
 /// Camera-frame points (metres) of the pixels of a `width`-wide row-major
 /// depth image whose `mask` flag is set and whose depth is measured (`depth
-/// / depth_scale` finite and positive, metres), in row-major order. Rows
-/// without a flag are skipped whole (one object's mask is small).
+/// / depth_scale` finite and positive, metres) and whose point is finite,
+/// in row-major order. Rows without a flag are skipped whole (one object's
+/// mask is small).
 pub fn back_project<T: Copy + Into<f64>>(
     depth: &[T],
     mask: &[bool],
@@ -68,7 +69,10 @@ pub fn back_project<T: Copy + Into<f64>>(
             if z.is_finite() && z > 0.0 {
                 let x = (u as f64 - camera.cx) * z / camera.fx;
                 let y = (v as f64 - camera.cy) * z / camera.fy;
-                points.push([x, y, z]);
+                // Absurd intrinsics or scale (fx of 1e-200) overflow: no point, as without depth.
+                if x.is_finite() && y.is_finite() {
+                    points.push([x, y, z]);
+                }
             }
         }
     }
