@@ -31,6 +31,8 @@ import multiprocessing
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -114,9 +116,13 @@ def run_worker(worker: int, cases: dict[str, int], batch: int, mesh_path: Path) 
         cases = {name: n for name, n in cases.items() if name != "bop"}
     rss_start = None
     seconds: dict[str, float] = {}
+    heartbeat = time.perf_counter()
     for name, wanted in cases.items():
         t0 = time.perf_counter()
         while sum(tally[name].values()) < wanted:
+            if time.perf_counter() - heartbeat > 300:
+                heartbeat = time.perf_counter()
+                print(f"worker {worker}: {name} {sum(tally[name].values())} of {wanted} cases", flush=True)
             with test_fuzz.watchdog():  # per batch: a case that hangs keeps its batch past WATCHDOG_S
                 runs[name]()
             if rss_start is None:
@@ -139,8 +145,14 @@ def main() -> int:
     share = sum(SHARES[n] for n in names)
     per_worker = {n: max(1, round(args.cases * SHARES[n] / share / args.workers)) for n in names}
     t0 = time.perf_counter()
-    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
-        results = pool.starmap(run_worker, [(w, per_worker, args.batch, args.mesh) for w in range(args.workers)])
+    spawn = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(args.workers, mp_context=spawn) as pool:
+        futures = [pool.submit(run_worker, w, per_worker, args.batch, args.mesh) for w in range(args.workers)]
+        try:
+            results = [f.result() for f in futures]
+        except BrokenProcessPool:
+            print("a worker died (a crash: its stack is above): FAILED", file=sys.stderr)
+            return 1
     elapsed = time.perf_counter() - t0
     total: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     busy: dict[str, float] = collections.defaultdict(float)
