@@ -69,8 +69,11 @@ def windowed(view, margin: int = 16) -> SimpleNamespace:
     )
 
 
-def run_worker(worker: int, cases: dict[str, int], batch: int, mesh_path: Path) -> dict:
-    """Fuzz each target for its number of cases; returns the outcome tally."""
+def run_worker(
+    worker: int, cases: dict[str, int], batch: int, mesh_path: Path, seconds: dict[str, float] | None = None
+) -> dict:
+    """Fuzz each target for its number of cases (or, with ``seconds``, until
+    its time is up, whichever comes first); returns the outcome tally."""
     mesh = read_mesh(mesh_path)
     codebook = edgepose.build_codebook(mesh)
     view = windowed(render_view(mesh, seed=2 + worker))
@@ -115,11 +118,12 @@ def run_worker(worker: int, cases: dict[str, int], batch: int, mesh_path: Path) 
     if bop_files is None:
         cases = {name: n for name, n in cases.items() if name != "bop"}
     rss_start = None
-    seconds: dict[str, float] = {}
+    spent: dict[str, float] = {}
     heartbeat = time.perf_counter()
     for name, wanted in cases.items():
         t0 = time.perf_counter()
-        while sum(tally[name].values()) < wanted:
+        deadline = t0 + (seconds[name] if seconds else float("inf"))
+        while sum(tally[name].values()) < wanted and time.perf_counter() < deadline:
             if time.perf_counter() - heartbeat > 300:
                 heartbeat = time.perf_counter()
                 print(f"worker {worker}: {name} {sum(tally[name].values())} of {wanted} cases", flush=True)
@@ -127,16 +131,17 @@ def run_worker(worker: int, cases: dict[str, int], batch: int, mesh_path: Path) 
                 runs[name]()
             if rss_start is None:
                 rss_start = rss_mb()  # after the first batch: allocator pools, onnxruntime arenas
-        seconds[name] = time.perf_counter() - t0
+        spent[name] = time.perf_counter() - t0
         done = sum(tally[name].values())
-        print(f"worker {worker}: {name} {done} cases in {seconds[name]:.0f} s", flush=True)
-    return {"tally": tally, "seconds": seconds, "rss": (rss_start, rss_mb())}
+        print(f"worker {worker}: {name} {done} cases in {spent[name]:.0f} s", flush=True)
+    return {"tally": tally, "seconds": spent, "rss": (rss_start, rss_mb())}
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cases", type=int, default=1_000_000, help="total cases, split by SHARES and workers")
     parser.add_argument("--workers", type=int, default=2, help="processes, each with its own seed and view")
+    parser.add_argument("--minutes", type=float, default=None, help="time budget, split by SHARES (default: none)")
     parser.add_argument("--only", default=None, help="comma-separated targets (default: all)")
     parser.add_argument("--batch", type=int, default=500, help="examples per hypothesis run")
     parser.add_argument("--mesh", type=Path, default=ROOT / "codebooks" / "power_drill.ply")
@@ -144,10 +149,11 @@ def main() -> int:
     names = args.only.split(",") if args.only else list(SHARES)
     share = sum(SHARES[n] for n in names)
     per_worker = {n: max(1, round(args.cases * SHARES[n] / share / args.workers)) for n in names}
+    budget = {n: 60 * args.minutes * SHARES[n] / share for n in names} if args.minutes else None
     t0 = time.perf_counter()
     spawn = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(args.workers, mp_context=spawn) as pool:
-        futures = [pool.submit(run_worker, w, per_worker, args.batch, args.mesh) for w in range(args.workers)]
+        futures = [pool.submit(run_worker, w, per_worker, args.batch, args.mesh, budget) for w in range(args.workers)]
         try:
             results = [f.result() for f in futures]
         except BrokenProcessPool:
