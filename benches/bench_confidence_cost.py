@@ -50,6 +50,7 @@ from edgepose.encoder import Encoder, default_encoder
 from edgepose.eval.benchmark import load_object
 from edgepose.model import load_model, read_mesh
 from edgepose.settings import DEFAULT_SETTINGS
+from edgepose.stages import refine
 
 CAD = Path(__file__).resolve().parents[2] / "shared" / "data" / "train_shapes" / "cad"
 PARTS = [
@@ -117,7 +118,7 @@ def warm_search(cloud: np.ndarray, codebook: edgepose.Codebook, pose: edgepose.P
     stages.flip_rival(query, codebook, R, t, settings)
     seconds = []
     for _ in range(WARM_CALLS):
-        search = stages.RivalSearch(query, codebook, R, t, settings, beside=False)
+        search = refine.RivalSearch(query, codebook, R, t, settings, beside=False)
         started = time.perf_counter()
         search.get()
         seconds.append(time.perf_counter() - started)
@@ -145,12 +146,12 @@ def main() -> None:
             bench = load_object(mesh, seeds, name=part, symmetric=codebook.symmetry.symmetric, stress=level)
             views += [(level, codebook, cloud) for cloud in bench.clouds]
     clocks = {name: Clock() for name in ("polished", "rival start", "polish", "rival get", "tie_broken")}
-    clocks["polished"].wrap(stages, "polished")
-    clocks["rival start"].wrap(stages.RivalSearch, "__init__")
-    clocks["polish"].wrap(stages, "polish")
-    clocks["rival get"].wrap(stages.RivalSearch, "get")
-    clocks["tie_broken"].wrap(stages, "tie_broken")
-    timed_tie_broken = stages.tie_broken
+    clocks["polished"].wrap(refine, "polished")
+    clocks["rival start"].wrap(refine.RivalSearch, "__init__")
+    clocks["polish"].wrap(refine, "polish")
+    clocks["rival get"].wrap(refine.RivalSearch, "get")
+    clocks["tie_broken"].wrap(refine, "tie_broken")
+    timed_tie_broken = refine.tie_broken
     tie_polished = [False]
 
     def watched(*args, **kwargs):  # notes whether a tie was polished (its polish handed on)
@@ -158,7 +159,7 @@ def main() -> None:
         tie_polished[0] |= fine is not None
         return pick, fine
 
-    stages.tie_broken = watched
+    refine.tie_broken = watched
     per_view: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
     warm: list[float] = []
     changed = tied = 0

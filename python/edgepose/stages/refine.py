@@ -1,329 +1,21 @@
-"""The five named stages of :func:`edgepose.estimate` (../shared/DESIGN.md,
-step 7), each reusable on its own (the exporter's evaluation, benchmarks):
+"""Stage 5 of :func:`edgepose.estimate`: ICP from the best distinct
+candidates, the polish of the best, and the poses that rival it — its
+turned rival (the flip margin, the turned pose) and the alternatives.
 
-1. :func:`prepare_query` — keep the points that are the object (outliers,
-   flying pixels and background a spilled mask picked up are dropped), turn
-   the cloud so its centroid ray is the optical axis, centre, scale and
-   resample it to a map;
-2. :func:`retrieve` — encode the map, cosine top-K over the codebook's
-   codes (Rust), the in-plane angle of each candidate (IRR head);
-3. :func:`candidate_poses` — each candidate view and angle as a pose
-   (:func:`pair_poses`: poses voted for by point pairs, for doubtful views);
-4. :func:`score_poses` — how well each pose explains the view: truncated
-   keypoint distances to the model and free-space violations (Rust);
-5. :func:`refine_hypotheses` — point-to-plane ICP (Rust) from the best few
-   distinct candidates, scored again; the best one is polished (while
-   another core searches for its turned rival for the confidence,
-   :func:`polished`).
-
-Poses are model frame → camera (the model frame is the mesh frame shifted by
-the model's centre); units are metres. Every tuning value lives in
-:class:`edgepose.settings.EstimateSettings`.
+Poses are model frame → camera; metres.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from functools import cached_property, lru_cache
 from typing import NamedTuple
 
 import numpy as np
 
 from edgepose import _core
-from edgepose.cloud import MIN_POINTS, clean_cloud
 from edgepose.codebook import Codebook
-from edgepose.encoder import Encoder
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
-from edgepose.views import rotation_about_z
-
-
-@dataclass(frozen=True, eq=False)
-class Query:
-    """An observed cloud made ready for the codebook (stage 1)."""
-
-    points: np.ndarray
-    """(N, 3) float32 camera-frame points kept as the object, metres."""
-    spacing: float
-    """Median distance between neighbouring points, metres (sizes the free-space grid)."""
-    centroid: np.ndarray
-    """(3,) float64 centroid of ``points``."""
-    r_corr: np.ndarray
-    """(3, 3) viewpoint correction: camera frame → frame whose +z is the centroid ray."""
-    map: np.ndarray
-    """(M, 3) float32 the corrected, centred, scaled and resampled map."""
-    keypoints: np.ndarray
-    """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
-    scene: SceneDepth | None = None
-    """The frame's depth around the object, when the caller gave the depth
-    image (:func:`scene_around`): the scene-violation test reads it."""
-    _samples: dict = field(default_factory=dict, repr=False)
-
-    @cached_property
-    def free_space(self) -> _core.DepthGrid:
-        """The nearest observed depth along each ray of ``points`` (what the
-        free-space test of :func:`score_poses` reads), with the scene's depth
-        around the object when known; built once per query."""
-        if self.scene is None:
-            return _core.DepthGrid(self.points, self.spacing)
-        return _core.DepthGrid(self.points, self.spacing, self.scene.depth, self.scene.camera, self.scene.radius)
-
-    @cached_property
-    def rim_tolerant_free_space(self) -> _core.DepthGrid:
-        """:attr:`free_space` (without the scene) whose cells at the edge of
-        the observed silhouette read the nearest depth within one cell: what
-        the doubt's free-space test reads (:func:`rim_tolerant_violation`)."""
-        return _core.DepthGrid(self.points, self.spacing, edge_slack=True)
-
-    @cached_property
-    def median_depth(self) -> float:
-        """Median z of ``points``, metres: the depth the sensor's noise is read at."""
-        return float(np.median(self.points[:, 2]))
-
-    def sample(self, count: int, seed: int) -> np.ndarray:
-        """:func:`subsample` of ``points`` (``count``, ``seed``), drawn once
-        per query: the stages ask for the same samples several times."""
-        if (count, seed) not in self._samples:
-            self._samples[count, seed] = subsample(self.points, count, seed)
-        return self._samples[count, seed]
-
-
-@dataclass(frozen=True)
-class SceneDepth:
-    """A window of the frame's depth image around one object: what the
-    scene-violation test compares model points off the object's silhouette
-    with (see ``rust/src/scoring.rs``)."""
-
-    depth: np.ndarray
-    """(h, w) float32 C-contiguous depth of the window, metres; 0: no measurement."""
-    camera: tuple[float, float, float, float]
-    """(fx, fy, cx, cy) of the window's pixels."""
-    radius: int = 2
-    """Each pixel is read as the nearest depth within this many pixels
-    (an object's edge jitters by a pixel or two)."""
-
-
-def on_support_plane(
-    points: np.ndarray, depth: np.ndarray, K: np.ndarray, depth_scale: float, diameter: float
-) -> np.ndarray:
-    """(n,) bool: the ``points`` ((n, 3) float32, camera frame, metres) that
-    lie on the surface the object stands on or in front of (a table, a
-    wall): a plane that most pixels 6–12 px around the points' silhouette in
-    the checked ``depth`` image (``depth / depth_scale`` metres, intrinsics
-    ``K``) show, with the rest of the points on the camera's side of it. A
-    detector's mask takes such points where it spills; where a table meets
-    the object there is no depth jump to drop them by. All False when the
-    surroundings show no such plane. Runs in the Rust core
-    (``rust/src/support.rs``, its thresholds there) without the GIL."""
-    return _core.on_support_plane(points, depth, K, float(depth_scale), float(diameter))
-
-
-def off_support_plane(
-    points: np.ndarray,
-    frame: tuple[np.ndarray, np.ndarray, float] | None,
-    diameter: float,
-    settings: EstimateSettings,
-) -> np.ndarray:
-    """``points`` ((n, 3) float32, camera frame, metres) without those
-    :func:`on_support_plane` finds on the surface the object stands on in
-    ``frame`` (the checked depth image, K and depth scale they came from),
-    unless fewer than ``MIN_POINTS`` would remain; ``points`` as they are
-    without a frame or with ``settings.support_plane`` off."""
-    if frame is None or not settings.support_plane:
-        return points
-    on = on_support_plane(points, *frame, diameter)
-    if on.any() and (~on).sum() >= MIN_POINTS:
-        return np.ascontiguousarray(points[~on])
-    return points
-
-
-def scene_around(
-    depth: np.ndarray, K: np.ndarray, depth_scale: float, points: np.ndarray, diameter: float
-) -> SceneDepth:
-    """The window of a checked ``depth`` image (``depth / depth_scale``
-    metres, intrinsics ``K``) that a pose of an object of ``diameter``
-    (metres) near its observed ``points`` (camera frame) can project into:
-    their pixel bounding box grown by ``SCENE_MARGIN`` × the diameter's size
-    in pixels at their nearest depth."""
-    grow = SCENE_MARGIN * diameter / max(float(points[:, 2].min()), 1e-6)
-    return _scene_window(depth, K, depth_scale, points, grow * float(K[0, 0]), grow * float(K[1, 1]))
-
-
-def scene_of_pose(
-    depth: np.ndarray, K: np.ndarray, depth_scale: float, codebook: Codebook, R: np.ndarray, t: np.ndarray
-) -> SceneDepth | None:
-    """The window of a checked ``depth`` image that one pose (model frame →
-    camera) of ``codebook``'s object projects into: its bounding box's
-    eight corners projected, grown by the scene test's pixel radius; None
-    when a corner is not in front of the camera. The tracker's window: its
-    pose is known before the scene is read, so the window need not cover
-    every pose a search might keep (:func:`scene_around`)."""
-    corners = codebook.model.box_corners @ R.T + t
-    if corners[:, 2].min() <= 1e-6:
-        return None
-    grow = SceneDepth.radius + 1
-    return _scene_window(depth, K, depth_scale, corners, grow, grow)
-
-
-def _scene_window(
-    depth: np.ndarray, K: np.ndarray, depth_scale: float, points: np.ndarray, grow_u: float, grow_v: float
-) -> SceneDepth:
-    """The window of ``depth`` over the pixel bounding box of ``points``
-    (camera frame, in front of it), grown by ``grow_u`` and ``grow_v`` pixels."""
-    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-    z = np.maximum(points[:, 2], 1e-6)
-    u, v = fx * points[:, 0] / z + cx, fy * points[:, 1] / z + cy
-    h, w = depth.shape
-    c0, c1 = int(max(u.min() - grow_u, 0)), int(min(u.max() + grow_u + 1, w))
-    r0, r1 = int(max(v.min() - grow_v, 0)), int(min(v.max() + grow_v + 1, h))
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # the core reads NaN, inf, ≤ 0 as none
-        window = np.divide(depth[r0:r1, c0:c1], depth_scale, dtype=np.float32)
-    return SceneDepth(window, (fx, fy, cx - c0, cy - r0))
-
-
-#: How far beyond the observed points (× d) the scene window reaches: a pose
-#: the search keeps (its centre within 1.25 model radii of the observed
-#: centroid) puts almost all of its model there.
-SCENE_MARGIN = 0.75
-
-
-class PoseScores(NamedTuple):
-    """Stage 4's terms per pose (see ``rust/src/scoring.rs``); lower ``cost`` is better."""
-
-    fit: np.ndarray
-    inlier_fraction: np.ndarray
-    free_space_violation: np.ndarray
-    cost: np.ndarray
-    """fit / inlier distance + free_space_weight × (free-space + scene violations)."""
-    off_silhouette: np.ndarray
-    """Share of the camera-facing model points landing where nothing was observed, 0–1."""
-    translation_constraint: np.ndarray
-    """How firmly the explained points pin the translation: the smallest
-    eigenvalue of the mean n nᵀ of their model normals, 0 (the pose could
-    slide along the seen surface) to 1/3."""
-    scene_violation: np.ndarray
-    """Share of the camera-facing model points off the observed silhouette
-    that stand in front of the scene's depth there, 0–1 (0 without a scene)."""
-
-    @property
-    def violation(self) -> np.ndarray:
-        """Free-space plus scene violations: how much the pose contradicts the view."""
-        return self.free_space_violation + self.scene_violation
-
-    @property
-    def net(self) -> np.ndarray:
-        """Inlier fraction minus :attr:`violation`: how hypotheses compete."""
-        return self.inlier_fraction - self.violation
-
-
-def prepare_query(
-    cloud: object,
-    codebook: Codebook,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-    frame: tuple[np.ndarray, np.ndarray, float] | None = None,
-) -> Query:
-    """Stage 1: the object's points of ``cloud`` (camera frame, metres) and
-    its map, in one call to the Rust core (``rust/src/query.rs``);
-    ``frame``: the checked depth image, K and depth scale the cloud came
-    from, for the scene-violation test (:func:`scene_around`) and, first,
-    to drop the points the mask took from the surface the object stands on
-    (:func:`on_support_plane`, ``settings.support_plane``)."""
-    model = codebook.model
-    cleaned = clean_cloud(cloud, model.diameter, settings.max_cloud_points)
-    points, spacing, centroid, r_corr, query_map, keypoints = _core.prepare_query(
-        off_support_plane(cleaned, frame, model.diameter, settings),
-        model.diameter,
-        model.scale,
-        codebook.map_points,
-        settings.keypoints,
-        MIN_POINTS,
-        settings.segment,
-        settings.shadow_spacings,
-        settings.max_shadowed_fraction,
-        settings.min_component_fraction,
-        settings.max_component_offset,
-        settings.steep_faces,
-    )
-    scene = None if frame is None else scene_around(*frame, points, model.diameter)
-    return Query(points, spacing, centroid, r_corr, query_map, keypoints, scene)
-
-
-class Retrieval(NamedTuple):
-    """Stage 2's outcome: the codebook views most similar to the query."""
-
-    views: np.ndarray
-    """(k,) viewpoint indices, most similar first."""
-    similarity: np.ndarray
-    """(k,) cosine similarity of each view's code to the query's."""
-    angles: np.ndarray
-    """(k,) in-plane angle to each view, radians."""
-    code: np.ndarray
-    """(D,) the query map's unit code."""
-
-
-def retrieve(
-    query: Query,
-    codebook: Codebook,
-    encoder: Encoder,
-    k: int,
-    encoded: tuple[np.ndarray, np.ndarray] | None = None,
-) -> Retrieval:
-    """Stage 2: the map's code and its ``k`` most similar codebook views, with
-    the in-plane angle to each. ``encoded``: the map's ``(code, spectrum)``
-    when already encoded (:func:`edgepose.estimate_many` encodes a frame's
-    maps at once)."""
-    if encoded is None:
-        codes, spectra = encoder.encode(query.map[None])
-        encoded = codes[0], spectra[0]
-    code, spectrum = encoded
-    candidates, similarity = _core.top_k(codebook.codes, code, k)
-    candidates = candidates.astype(np.intp)
-    angles = encoder.in_plane_angles(spectrum, codebook.spectra[candidates]).astype(np.float64)
-    return Retrieval(candidates, similarity, angles, code)
-
-
-def candidate_poses(
-    query: Query,
-    codebook: Codebook,
-    candidates: np.ndarray,
-    angles: np.ndarray,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Stage 3: model frame → camera poses ``(R (k, 3, 3), t (k, 3))``:
-    ``R = R_corrᵀ · Rz(θ) · R_view``; the translation from the centroids,
-    then moved so the keypoints land on the model."""
-    rotations = query.r_corr.T @ rotation_about_z(angles) @ codebook.viewpoints.rotations[candidates]
-    translations = query.centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
-    if settings.align_iterations > 0:
-        translations = codebook.index.align_translations(
-            query.keypoints,
-            rotations,
-            translations,
-            settings.align_iterations,
-            settings.candidate_inlier_distance * codebook.model.diameter,
-        )
-    return rotations, translations
-
-
-def pair_poses(
-    query: Query, codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS
-) -> tuple[np.ndarray, np.ndarray]:
-    """Stage 3 without the codebook's views: poses voted for by pairs of
-    oriented points of the query and the model (point-pair features, Rust),
-    ``(R (P, 3, 3), t (P, 3))`` model frame → camera, most votes first, at
-    most ``settings.pair_poses``. Each pair is local, so they find the
-    object when most of it is hidden and the map's code matches no view."""
-    rotations, translations, _ = codebook.index.pair_poses(
-        query.points, settings.pair_scene_points, settings.pair_reference_stride, settings.pair_poses
-    )
-    return rotations, translations
-
-
-def nearest_views(codebook: Codebook, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-    """(P,) the codebook viewpoint nearest to the camera's direction in each
-    pose (model frame → camera)."""
-    towards_camera = -np.einsum("pji,pj->pi", rotations, translations)
-    towards_camera /= np.linalg.norm(towards_camera, axis=1, keepdims=True)
-    return np.argmax(towards_camera @ codebook.viewpoints.directions.T, axis=1).astype(np.intp)
+from edgepose.stages.query import Query
+from edgepose.stages.scoring import PoseScores, free_space_tolerance, near_the_cloud, score_poses
 
 
 class FlipRival(NamedTuple):
@@ -459,64 +151,6 @@ def distinct_poses(
                 pose_distances(codebook, rotations, translations, int(i)) > RIVAL_DISTANCE * codebook.model.diameter
             )
     return taken
-
-
-def free_space_tolerance(query: Query, diameter: float, settings: EstimateSettings = DEFAULT_SETTINGS) -> float:
-    """How far (metres) a camera-facing model point must stand in front of
-    the observed depth to contradict the view: ``settings.free_space_tolerance``
-    × ``diameter``, or ``settings.free_space_noise_sigmas`` standard
-    deviations of the sensor's depth noise (``settings.depth_noise``) at
-    the query's median depth, whichever is larger."""
-    a, b, c = settings.depth_noise
-    noise = a + b * (query.median_depth - c) ** 2
-    return max(settings.free_space_tolerance * diameter, settings.free_space_noise_sigmas * noise)
-
-
-def score_poses(
-    query: Query,
-    codebook: Codebook,
-    observed: np.ndarray,
-    rotations: np.ndarray,
-    translations: np.ndarray,
-    inlier_distance: float,
-    free_space_weight: float,
-    settings: EstimateSettings = DEFAULT_SETTINGS,
-) -> PoseScores:
-    """Stage 4: the terms of each pose against the ``observed`` points (camera
-    frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
-    d = codebook.model.diameter
-    fit, inliers, violation, off_silhouette, constraint, scene = codebook.index.score(
-        observed,
-        query.free_space,
-        np.ascontiguousarray(rotations),
-        np.ascontiguousarray(translations),
-        inlier_distance,
-        free_space_tolerance(query, d, settings),
-        settings.free_space_model_stride,
-    )
-    cost = fit / inlier_distance + free_space_weight * (violation + scene)
-    return PoseScores(fit, inliers, violation, cost, off_silhouette, constraint, scene)
-
-
-def rim_tolerant_violation(
-    query: Query, codebook: Codebook, R: np.ndarray, t: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
-) -> float:
-    """The free-space violation (0–1) of one pose (model frame → camera)
-    with one grid cell of slack at the silhouette's edge
-    (:attr:`Query.rim_tolerant_free_space`). A real sensor's silhouette is a
-    pixel or two off the object (depth and mask registered apart, mixed
-    depth at the edge), so a right pose's rim stands just in front of the
-    edge cells: that alone must not make it doubtful."""
-    violation = codebook.index.score(
-        query.points[:1],
-        query.rim_tolerant_free_space,
-        np.ascontiguousarray(R[None], dtype=np.float64),
-        np.ascontiguousarray(t[None], dtype=np.float64),
-        settings.hypothesis_inlier_distance * codebook.model.diameter,
-        free_space_tolerance(query, codebook.model.diameter, settings),
-        settings.free_space_model_stride,
-    )[2]
-    return float(violation[0])
 
 
 class Refined(NamedTuple):
@@ -678,11 +312,17 @@ def tie_broken(
 #: Hypotheses farther apart than this × d (ADD, or ADD-S for a symmetric
 #: object) are different poses: rivals for :attr:`Refined.margin`.
 RIVAL_DISTANCE = 0.1
+
+
 #: Model points (the first, spread ones) that measure distances between poses.
 RIVAL_POINTS = 64
+
+
 #: Keypoint alignment iterations of each turned pose of the flip margin
 #: (the candidates take ``settings.align_iterations``) ...
 FLIP_ALIGN_ITERATIONS = 1
+
+
 #: ... and the rival turned poses that screen best, this many, are settled
 #: by this many ICP iterations (pairing within ``settings.icp_max_distance``)
 #: before they are scored: an unsettled rival that is the truth loses to a
@@ -694,6 +334,8 @@ FLIP_ALIGN_ITERATIONS = 1
 #: the confidence's cross-validated stressed AUROC the same (0.967 against
 #: 0.966), its lap 0.59 → 0.43 ms (median, 288 tuning-part estimates).
 FLIP_SETTLED_RIVALS = 1
+
+
 FLIP_SETTLE_ITERATIONS = 2
 
 
@@ -810,32 +452,6 @@ def pose_distances(codebook: Codebook, rotations: np.ndarray, translations: np.n
         codebook.symmetry.symmetric,
         RIVAL_POINTS,
     )
-
-
-def near_the_cloud(
-    query: Query, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
-) -> np.ndarray:
-    """(H,) bool: whether each pose (model frame → camera, ``translations``
-    (H, 3) metres: where the model's centre lands) keeps the model's centre
-    within ``settings.max_centre_offset`` model radii of the observed centroid."""
-    radius = 1.0 / codebook.model.scale
-    return np.linalg.norm(translations - query.centroid, axis=1) <= settings.max_centre_offset * radius
-
-
-def subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
-    """At most ``count`` of ``points``, drawn without replacement (seeded), C-contiguous."""
-    if len(points) > count:
-        points = points[_drawn(len(points), count, seed)]
-    return np.ascontiguousarray(points)
-
-
-@lru_cache(maxsize=256)
-def _drawn(n: int, count: int, seed: int) -> np.ndarray:
-    """The indices :func:`subsample` takes: the same for the same sizes and
-    seed, so a tracker's frames of similar size draw them once."""
-    drawn = np.random.default_rng(seed).choice(n, count, replace=False)
-    drawn.flags.writeable = False
-    return drawn
 
 
 def distinct_hypotheses(rotations: np.ndarray, order: np.ndarray, count: int, min_angle_deg: float) -> np.ndarray:
