@@ -217,7 +217,8 @@ def checked_depth(depth: object, K: object, depth_scale: float) -> tuple[np.ndar
             f"depth_scale must be a positive number (depth units per metre), got {depth_scale!r:.40}"
         )
     if depth.dtype not in (np.dtype(np.uint16), np.dtype(np.float32), np.dtype(np.float64)):
-        depth = depth.astype(np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):  # what does not convert is not finite: no depth
+            depth = depth.astype(np.float64)
     return np.ascontiguousarray(depth), K
 
 
