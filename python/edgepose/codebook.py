@@ -195,20 +195,7 @@ class Codebook:
         cls, tensors: dict[str, np.ndarray], metadata: dict[str, str], encoder: Encoder, name: str
     ) -> Codebook:
         """A codebook from stored arrays and header, after checking both."""
-        if metadata.get("format") != FORMAT:
-            raise CodebookError(f"{name}: not an edgepose codebook (format {metadata.get('format')!r})")
-        if metadata.get("version") != str(VERSION):
-            raise CodebookError(
-                f"{name}: codebook format version {metadata.get('version')}, this edgepose reads {VERSION}; "
-                "rebuild it with edgepose.build_codebook"
-            )
-        if metadata.get("checksum") != _checksum(tensors, metadata):
-            raise CodebookError(f"{name}: checksum mismatch: the file is corrupt (flipped or altered bytes)")
-        if metadata.get("encoder") != encoder.fingerprint:
-            raise CodebookError(
-                f"{name}: built by encoder {str(metadata.get('encoder'))[:12]}…, "
-                f"but the encoder in use is {encoder.fingerprint[:12]}…; rebuild the codebook"
-            )
+        _check_header(tensors, metadata, encoder, name)
         try:
             info = json.loads(metadata["model"])
             for key, dtype in _DTYPES.items():
@@ -276,6 +263,25 @@ class Codebook:
             raise CodebookError(f"{name}: missing {e} in the codebook") from None
         except (TypeError, ValueError) as e:
             raise CodebookError(f"{name}: malformed codebook ({e})") from None
+
+
+def _check_header(tensors: dict[str, np.ndarray], metadata: dict[str, str], encoder: Encoder, name: str) -> None:
+    """CodebookError unless the header names this format and version, its
+    checksum matches the arrays, and ``encoder`` made the codes."""
+    if metadata.get("format") != FORMAT:
+        raise CodebookError(f"{name}: not an edgepose codebook (format {metadata.get('format')!r})")
+    if metadata.get("version") != str(VERSION):
+        raise CodebookError(
+            f"{name}: codebook format version {metadata.get('version')}, this edgepose reads {VERSION}; "
+            "rebuild it with edgepose.build_codebook"
+        )
+    if metadata.get("checksum") != _checksum(tensors, metadata):
+        raise CodebookError(f"{name}: checksum mismatch: the file is corrupt (flipped or altered bytes)")
+    if metadata.get("encoder") != encoder.fingerprint:
+        raise CodebookError(
+            f"{name}: built by encoder {str(metadata.get('encoder'))[:12]}…, "
+            f"but the encoder in use is {encoder.fingerprint[:12]}…; rebuild the codebook"
+        )
 
 
 def build_codebook(

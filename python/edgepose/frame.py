@@ -83,17 +83,7 @@ def estimate_many(
     t0 = time.perf_counter()
     workers = max(1, min(workers or usable_cores(), len(objects)))
     depth, K = checked_depth(depth, K, depth_scale)
-    for i, pair in enumerate(objects):
-        if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
-            raise InvalidArgumentError(f"objects[{i}] must be a (mask, codebook) pair, got {pair!r:.80}")
-        try:
-            check_types(codebook=pair[1])
-        except InvalidArgumentError as e:
-            raise InvalidArgumentError(f"objects[{i}]: {e}") from None
-    masks = [checked_mask(mask, depth.shape) for mask, _ in objects]
-    codebooks = [codebook for _, codebook in objects]
-    for codebook in codebooks:
-        check_estimate_inputs(codebook, encoder, settings)
+    masks, codebooks = _checked_objects(objects, depth.shape, encoder, settings)
     timings: dict[str, float] = {}
 
     def prepared(i: int) -> tuple[Query | None, Laps, EdgePoseError | None]:
@@ -142,3 +132,22 @@ def estimate_many(
     seconds = time.perf_counter() - t0
     timings["total"] = seconds
     return FramePoses(poses, tuple(errors), seconds, timings)
+
+
+def _checked_objects(
+    objects: Sequence[tuple[np.ndarray, Codebook]], shape: tuple[int, ...], encoder: Encoder, settings: EstimateSettings
+) -> tuple[list[np.ndarray], list[Codebook]]:
+    """The masks (bool, ``shape``) and codebooks of ``objects``, each pair
+    checked as :func:`edgepose.estimate` checks its arguments; the errors name ``objects[i]``."""
+    for i, pair in enumerate(objects):
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
+            raise InvalidArgumentError(f"objects[{i}] must be a (mask, codebook) pair, got {pair!r:.80}")
+        try:
+            check_types(codebook=pair[1])
+        except InvalidArgumentError as e:
+            raise InvalidArgumentError(f"objects[{i}]: {e}") from None
+    masks = [checked_mask(mask, shape) for mask, _ in objects]
+    codebooks = [codebook for _, codebook in objects]
+    for codebook in codebooks:
+        check_estimate_inputs(codebook, encoder, settings)
+    return masks, codebooks
