@@ -47,6 +47,30 @@ def test_unknown_cloud_suffix_is_an_error(tmp_path):
         io.read_cloud(tmp_path / "c.xyz")
 
 
+def test_a_damaged_png_is_a_file_format_error(tmp_path, rng):
+    # Found by benches/fuzz.py: a flipped bit in a chunk's header made Pillow
+    # raise SyntaxError ("broken PNG file"), which escaped as itself.
+    depth = rng.integers(0, 65535, size=(48, 64)).astype(np.uint16)
+    io.write_png(tmp_path / "d.png", depth)
+    blob = bytearray((tmp_path / "d.png").read_bytes())
+    damaged = []
+    for i in range(8, 64):  # every bit of the header and the first chunks flipped
+        for bit in range(8):
+            flipped = bytearray(blob)
+            flipped[i] ^= 1 << bit
+            damaged.append(bytes(flipped))
+    damaged += [bytes(blob[:n]) for n in (10, 40, len(blob) // 2, len(blob) - 5)]  # cut short
+    outcomes = set()
+    for data in damaged:
+        (tmp_path / "x.png").write_bytes(data)
+        try:
+            io.read_depth_png(tmp_path / "x.png")
+            outcomes.add("read")
+        except io.FileFormatError as e:
+            outcomes.add(str(e).split("(")[1].split(":")[0])
+    assert "SyntaxError" in outcomes, outcomes
+
+
 def test_sixteen_bit_png_round_trip(tmp_path, rng):
     depth = rng.integers(0, 65535, size=(48, 64)).astype(np.uint16)
     io.write_png(tmp_path / "d.png", depth)

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import struct
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -165,8 +167,9 @@ def _read_png(path: str | os.PathLike, palette_indices: bool = False) -> np.ndar
             elif image.mode == "I;16B":
                 image = image.convert("I;16")
             return np.asarray(image)
-    except (OSError, UnidentifiedImageError, ValueError) as e:
-        raise FileFormatError(f"{path}: not a readable image ({e})") from None
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError, EOFError, struct.error, zlib.error) as e:
+        # Pillow reports a damaged chunk as SyntaxError, a cut stream as EOFError or struct.error.
+        raise FileFormatError(f"{path}: not a readable image ({type(e).__name__}: {e})") from None
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
