@@ -6,6 +6,7 @@ Units are metres; poses are ``T_cam_obj``, camera frame as OpenCV.
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 
 from edgepose.cli.app import (
@@ -91,6 +92,27 @@ def demo(
     out.print(f"[bold]picture[/bold]     {picture}")
 
 
+def _observed(
+    cloud: Path, K: str | None, mask: Path | None, depth_scale: float
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The object's points (camera frame, metres) from a cloud file, or
+    from a depth PNG with its intrinsics and mask; with the camera matrix
+    and the depth image when it was one (None otherwise)."""
+    import edgepose
+    from edgepose import io
+
+    if cloud.suffix.lower() == ".png":
+        if K is None or mask is None:
+            raise Failure(f"{cloud}: a depth image needs --K (intrinsics) and --mask (the object's pixels)")
+        camera = io.parse_intrinsics(K)
+        depth = io.read_depth_png(cloud)
+        points = edgepose.cloud_from_depth(depth, camera, io.read_mask_png(mask), depth_scale=depth_scale)
+        return points, camera, depth
+    if K is not None or mask is not None:
+        raise Failure("--K and --mask apply to depth images (.png) only")
+    return io.read_cloud(cloud), None, None
+
+
 def estimate(
     cloud: Annotated[
         Path,
@@ -134,18 +156,7 @@ def estimate(
 
     with handle_errors():
         book = edgepose.Codebook.load(codebook)
-        camera, depth = None, None
-        if cloud.suffix.lower() == ".png":
-            if K is None or mask is None:
-                raise Failure(f"{cloud}: a depth image needs --K (intrinsics) and --mask (the object's pixels)")
-            camera = io.parse_intrinsics(K)
-            depth = io.read_depth_png(cloud)
-            segmentation = io.read_mask_png(mask)
-            points = edgepose.cloud_from_depth(depth, camera, segmentation, depth_scale=depth_scale)
-        else:
-            if K is not None or mask is not None:
-                raise Failure("--K and --mask apply to depth images (.png) only")
-            points = io.read_cloud(cloud)
+        points, camera, depth = _observed(cloud, K, mask, depth_scale)
         T_true = io.read_pose(truth) if truth is not None else None
         # One untimed call first, so the timings are those of a long-running
         # process. A depth image's whole frame checks the pose against the

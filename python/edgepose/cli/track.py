@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -22,6 +22,9 @@ from edgepose.cli.app import (
     stdout_console,
 )
 from edgepose.cloud import DEPTH_SCALE_MM
+
+if TYPE_CHECKING:
+    from edgepose.pose import Pose
 
 FRAME_SUFFIXES = (".png", ".npy", ".ply", ".pcd")
 
@@ -96,24 +99,9 @@ def track(
             ms = pose.timings["total"] * 1e3
             times.append(ms)
             modes.append(pose.mode)
-            rows.append(
-                [
-                    i,
-                    path.name,
-                    *(f"{v:.8f}" for v in pose.matrix.ravel()),
-                    pose.mode,
-                    f"{pose.confidence:.4f}",
-                    f"{ms:.3f}",
-                ]
-            )
+            rows.append(_pose_row(i, path, pose, ms))
             log.log(codebook.stem, Frame(cloud, model_points, pose.matrix, K=camera, depth=depth))
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with out.open("w", newline="") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            writer.writerow(
-                ["frame", "file", *(f"m{r}{c}" for r in range(4) for c in range(4)), "mode", "confidence", "ms"]
-            )
-            writer.writerows(rows)
+        _write_poses(out, rows)
     counts = {m: modes.count(m) for m in ("initialised", "tracked", "reinitialised", "error")}
     tracked = [t for t, m in zip(times, [m for m in modes if m != "error"]) if m == "tracked"]
     stdout_console().print(
@@ -122,6 +110,22 @@ def track(
         f"median {np.median(times) if times else float('nan'):.2f} ms per frame"
         f"{f', tracked {np.median(tracked):.2f} ms' if tracked else ''}; poses in {out}"
     )
+
+
+def _pose_row(i: int, path: Path, pose: Pose, ms: float) -> list:
+    """Frame ``i``'s CSV row: its file, ``T_cam_obj`` row-major, mode, confidence, ms."""
+    return [i, path.name, *(f"{v:.8f}" for v in pose.matrix.ravel()), pose.mode, f"{pose.confidence:.4f}", f"{ms:.3f}"]
+
+
+def _write_poses(out: Path, rows: list[list]) -> None:
+    """The track's CSV: a header, then one row a frame (see :func:`track`)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with out.open("w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(
+            ["frame", "file", *(f"m{r}{c}" for r in range(4) for c in range(4)), "mode", "confidence", "ms"]
+        )
+        writer.writerows(rows)
 
 
 def _frame_paths(frames: list[Path]) -> list[Path]:
