@@ -511,3 +511,22 @@ def test_fuzz_bop_folder(tmp_path):
         check_bop(tmp_path / "bop")
 
     run()
+
+
+def test_a_scene_file_that_is_not_an_object_is_a_dataset_error(tmp_path):
+    # Found by benches/fuzz.py: scene_gt.json holding a number raised AttributeError.
+    real = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_real"
+    if not real.is_dir():
+        pytest.skip(f"{real}: the real frames are not here")
+    files = small_bop_folder(real, tmp_path / "good")
+    for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
+        for value in (b"3", b"[1, 2]", b'"text"'):
+            root = tmp_path / f"{name}-{len(value)}"
+            write_bop_folder(root, {**files, f"test/000000/{name}": value})
+            assert check_bop(root) == "BopDatasetError", (name, value)
+    root = tmp_path / "keys"
+    write_bop_folder(root, {**files, "test/000000/scene_camera.json": b'{"one": {}}'})
+    from edgepose.eval.bop import BopDataset, BopDatasetError
+
+    with pytest.raises(BopDatasetError, match="not a number"):
+        BopDataset(root).image_ids(0)

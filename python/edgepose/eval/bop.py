@@ -292,7 +292,11 @@ class BopDataset:
 
     def image_ids(self, scene_id: int) -> list[int]:
         """The images of a scene (``scene_camera.json``), ascending."""
-        return sorted(int(k) for k in self._scene(scene_id)[0])
+        try:
+            return sorted(int(k) for k in self._scene(scene_id)[0])
+        except ValueError as e:
+            where = self.split_dir / f"{scene_id:06d}" / "scene_camera.json"
+            raise BopDatasetError(f"{where}: an image id that is not a number ({e})") from None
 
     def has_ground_truth(self, scene_id: int) -> bool:
         """Whether the scene's poses are published (``scene_gt.json``; some
@@ -377,12 +381,16 @@ class BopDataset:
             where = self.split_dir / f"{scene_id:06d}"
             if not where.is_dir():
                 raise BopDatasetError(f"{where}: no such scene folder")
-            gt, info = where / "scene_gt.json", where / "scene_gt_info.json"
-            self._scenes[scene_id] = (
-                _read_json(where / "scene_camera.json"),
+            camera, gt, info = where / "scene_camera.json", where / "scene_gt.json", where / "scene_gt_info.json"
+            scene = (
+                _read_json(camera),
                 _read_json(gt) if gt.is_file() else {},
                 _read_json(info) if info.is_file() else {},
             )
+            for path, value in zip((camera, gt, info), scene):
+                if not isinstance(value, dict):
+                    raise BopDatasetError(f"{path}: expected an object of images by id, got {type(value).__name__}")
+            self._scenes[scene_id] = scene
         return self._scenes[scene_id]
 
 
