@@ -441,3 +441,17 @@ def test_absurd_intrinsics_never_give_non_finite_points():
     cloud = edgepose.cloud_from_depth(depth, K, depth_scale=5.4e-266)
     assert np.isfinite(cloud).all()
     assert len(cloud) <= 4  # only the column over the principal point (x = 0) is finite, if any
+
+
+def test_a_focal_length_that_sends_the_points_to_infinity_is_survived(drill):
+    # Found by benches/fuzz.py: a huge fy made the scene window's bounds
+    # infinite, and int() raised OverflowError inside estimate.
+    mesh, codebook = drill
+    view = render_view(mesh, seed=5)
+    K = view.camera.K.copy()
+    K[1, 1] = 1e308
+    try:
+        pose = edgepose.estimate(view.cloud, codebook, depth=view.depth, K=K, depth_scale=1.0)
+    except edgepose.EdgePoseError:
+        return
+    assert np.isfinite(pose.matrix).all()

@@ -153,10 +153,11 @@ def _scene_window(
     (camera frame, in front of it), grown by ``grow_u`` and ``grow_v`` pixels."""
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
     z = np.maximum(points[:, 2], 1e-6)
-    u, v = fx * points[:, 0] / z + cx, fy * points[:, 1] / z + cy
     h, w = depth.shape
-    c0, c1 = int(max(u.min() - grow_u, 0)), int(min(u.max() + grow_u + 1, w))
-    r0, r1 = int(max(v.min() - grow_v, 0)), int(min(v.max() + grow_v + 1, h))
+    with np.errstate(over="ignore", invalid="ignore"):  # absurd intrinsics: handled by _pixel_span
+        u, v = fx * points[:, 0] / z + cx, fy * points[:, 1] / z + cy
+        c0, c1 = _pixel_span(u.min() - grow_u, u.max() + grow_u + 1, w)
+        r0, r1 = _pixel_span(v.min() - grow_v, v.max() + grow_v + 1, h)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # the core reads NaN, inf, ≤ 0 as none
         window = np.divide(depth[r0:r1, c0:c1], depth_scale, dtype=np.float32)
     return SceneDepth(window, (fx, fy, cx - c0, cy - r0))
@@ -198,6 +199,14 @@ def prepare_query(
     )
     scene = None if frame is None else scene_around(*frame, points, model.diameter)
     return Query(points, spacing, centroid, r_corr, query_map, keypoints, scene)
+
+
+def _pixel_span(lo: float, hi: float, size: int) -> tuple[int, int]:
+    """Pixels ``[lo, hi)`` within ``[0, size]``; all of them when a bound is
+    not finite (absurd intrinsics put the points at infinity)."""
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return 0, size
+    return int(min(max(lo, 0), size)), int(min(max(hi, 0), size))
 
 
 def subsample(points: np.ndarray, count: int, seed: int) -> np.ndarray:
