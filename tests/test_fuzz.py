@@ -497,11 +497,17 @@ def test_fuzz_frame_doors(drill, view, door):
     run()
 
 
-def test_fuzz_bop_folder(tmp_path):
+@pytest.fixture
+def bop_files(tmp_path):
+    """The files of a good one-image BOP folder cut from the real frames (written to ``tmp_path/good``)."""
     real = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_real"
     if not real.is_dir():
         pytest.skip(f"{real}: the real frames are not here")
-    files = small_bop_folder(real, tmp_path / "good")
+    return small_bop_folder(real, tmp_path / "good")
+
+
+def test_fuzz_bop_folder(bop_files, tmp_path):
+    files = bop_files
     assert check_bop(tmp_path / "good") == "read"
 
     @settings(max_examples=EXAMPLES, derandomize=True, **FUZZ_SETTINGS)
@@ -513,12 +519,9 @@ def test_fuzz_bop_folder(tmp_path):
     run()
 
 
-def test_a_scene_file_that_is_not_an_object_is_a_dataset_error(tmp_path):
+def test_a_scene_file_that_is_not_an_object_is_a_dataset_error(bop_files, tmp_path):
     # Found by benches/fuzz.py: scene_gt.json holding a number raised AttributeError.
-    real = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_real"
-    if not real.is_dir():
-        pytest.skip(f"{real}: the real frames are not here")
-    files = small_bop_folder(real, tmp_path / "good")
+    files = bop_files
     for name in ("scene_camera.json", "scene_gt.json", "scene_gt_info.json"):
         for value in (b"3", b"[1, 2]", b'"text"'):
             root = tmp_path / f"{name}-{len(value)}"

@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from edgepose import _core
 from edgepose.codebook import Codebook
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages.query import Query
@@ -65,13 +66,15 @@ def score_poses(
     inlier_distance: float,
     free_space_weight: float,
     settings: EstimateSettings = DEFAULT_SETTINGS,
+    free_space: _core.DepthGrid | None = None,
 ) -> PoseScores:
     """Stage 4: the terms of each pose against the ``observed`` points (camera
-    frame) and the free space of the whole query. ``inlier_distance`` is in metres."""
+    frame) and the free space of the whole query (``free_space``: another
+    grid of it than :attr:`Query.free_space`). ``inlier_distance`` is in metres."""
     d = codebook.model.diameter
     fit, inliers, violation, off_silhouette, constraint, scene = codebook.index.score(
         observed,
-        query.free_space,
+        query.free_space if free_space is None else free_space,
         np.ascontiguousarray(rotations),
         np.ascontiguousarray(translations),
         inlier_distance,
@@ -91,16 +94,19 @@ def rim_tolerant_violation(
     pixel or two off the object (depth and mask registered apart, mixed
     depth at the edge), so a right pose's rim stands just in front of the
     edge cells: that alone must not make it doubtful."""
-    violation = codebook.index.score(
+    # The violation reads model points only: one observed point is enough.
+    scores = score_poses(
+        query,
+        codebook,
         query.points[:1],
-        query.rim_tolerant_free_space,
-        np.ascontiguousarray(R[None], dtype=np.float64),
-        np.ascontiguousarray(t[None], dtype=np.float64),
+        np.asarray(R[None], dtype=np.float64),
+        np.asarray(t[None], dtype=np.float64),
         settings.hypothesis_inlier_distance * codebook.model.diameter,
-        free_space_tolerance(query, codebook.model.diameter, settings),
-        settings.free_space_model_stride,
-    )[2]
-    return float(violation[0])
+        0.0,
+        settings,
+        query.rim_tolerant_free_space,
+    )
+    return float(scores.free_space_violation[0])
 
 
 def near_the_cloud(
