@@ -11,6 +11,7 @@ import edgepose
 import numpy as np
 import pytest
 from edgepose import _core
+from edgepose.cloud import _clean_settings
 from edgepose.errors import InvalidCloudError, InvalidModelError
 
 STUB = Path(edgepose.__file__).parent / "_core.pyi"
@@ -143,6 +144,8 @@ def test_the_core_raises_edgeposes_own_exceptions():
     with pytest.raises(InvalidCloudError, match=r"shape \(N, 3\)"):
         _core.DepthGrid(np.zeros((4, 2), np.float32), 0.01)
     with pytest.raises(InvalidCloudError, match="valid points"):
-        _core.clean_cloud(np.full((40, 3), np.nan), 0.1, 2048, 0, 32, 1e6, 5.0, 0.02)
+        _core.clean_cloud(np.full((40, 3), np.nan), 0.1, _clean_settings(2048))
+    with pytest.raises(InvalidCloudError, match="mask shape"):
+        _core.clean_depth_cloud(np.ones((4, 4)), np.ones((4, 5), bool), np.eye(3), 1.0, 0.1, _clean_settings(2048))
     with pytest.raises(ValueError, match="reference 2"):
         index.pose_distances(np.eye(3)[None].repeat(2, 0), np.zeros((2, 3)), 2, False, 64)

@@ -22,6 +22,7 @@ from pathlib import Path
 import edgepose
 import numpy as np
 import pytest
+from edgepose.cloud import checked_depth, clean_cloud, clean_depth_cloud
 from edgepose.eval import render_view
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -273,15 +274,28 @@ def frame_inputs(draw, view) -> tuple:
 
 
 def check_cloud_from_depth(value: tuple) -> str:
-    """(N, 3) finite points in front of the camera, or an EdgePoseError."""
+    """(N, 3) finite points in front of the camera, or an EdgePoseError; and
+    the points ``clean_depth_cloud`` keeps of the frame are those
+    ``clean_cloud`` keeps of that cloud (or the same error)."""
     depth, K, mask, depth_scale = value
     with watchdog():
         try:
             cloud = edgepose.cloud_from_depth(depth, K, mask, depth_scale=depth_scale)
         except edgepose.EdgePoseError as e:
             return type(e).__name__
-    assert cloud.ndim == 2 and cloud.shape[1] == 3 and cloud.dtype == np.float64
-    assert np.isfinite(cloud).all() and (cloud[:, 2] > 0).all()
+        assert cloud.ndim == 2 and cloud.shape[1] == 3 and cloud.dtype == np.float64
+        assert np.isfinite(cloud).all() and (cloud[:, 2] > 0).all()
+        depth, K = checked_depth(depth, K, depth_scale)
+        kept = []
+        for keep in (
+            lambda: clean_cloud(cloud, 0.2, 256),
+            lambda: clean_depth_cloud(depth, K, depth_scale, mask, 0.2, 256),
+        ):
+            try:
+                kept.append(keep())
+            except edgepose.InvalidCloudError as e:
+                kept.append(str(e))
+        assert type(kept[0]) is type(kept[1]) and np.array_equal(*kept), kept
     return "points"
 
 

@@ -92,6 +92,11 @@ def test_depth_frames_and_two_trackers_in_two_threads_give_the_serial_results(dr
         t.join()
     for i in range(2):
         assert all(np.array_equal(a, b) for a, b in zip(serial, results[i]))
+    # update_depth reads only the pixels a tracked frame keeps: the poses of the cloud's door.
+    tracker = edgepose.Tracker(codebook)
+    for v, matrix in zip(views, serial):
+        cloud = edgepose.cloud_from_depth(v.depth, v.camera.K, v.mask, depth_scale=1.0)
+        assert np.array_equal(tracker.update(cloud, depth=v.depth, K=v.camera.K, depth_scale=1.0).matrix, matrix)
 
 
 def test_the_predicted_turn_keeps_the_motions_direction():

@@ -44,15 +44,31 @@ def on_support_plane(
     depth_scale: float,
     diameter: float,
 ) -> npt.NDArray[np.bool_]: ...
+
+class CleanSettings:
+    def __init__(
+        self,
+        *,
+        max_points: int,
+        seed: int,
+        min_points: int,
+        max_coordinate: float,
+        max_extent_diameters: float,
+        min_extent_diameters: float,
+    ) -> None: ...
+
 def clean_cloud(
     cloud: npt.NDArray[np.float32] | npt.NDArray[np.float64],
     diameter: float,
-    max_points: int,
-    seed: int,
-    min_points: int,
-    max_coordinate: float,
-    max_extent_diameters: float,
-    min_extent_diameters: float,
+    settings: CleanSettings,
+) -> npt.NDArray[np.float32]: ...
+def clean_depth_cloud(
+    depth: npt.NDArray[np.uint16] | npt.NDArray[np.float32] | npt.NDArray[np.float64],
+    mask: npt.NDArray[np.bool_],
+    k: npt.NDArray[np.float64],
+    depth_scale: float,
+    diameter: float,
+    settings: CleanSettings,
 ) -> npt.NDArray[np.float32]: ...
 def prepare_query(
     points: npt.NDArray[np.float32],

@@ -7,6 +7,7 @@ z forward), already segmented to one object.
 from __future__ import annotations
 
 import numbers
+from functools import lru_cache
 
 import numpy as np
 
@@ -85,15 +86,34 @@ def clean_cloud(cloud: object, diameter: float, max_points: int) -> np.ndarray:
     if array.dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
         with np.errstate(invalid="ignore", over="ignore"):  # what does not convert is not finite: dropped
             array = array.astype(np.float64)  # integers, float16, other byte orders: the same draw
-    return _core.clean_cloud(
-        array,
-        diameter,
-        max_points,
-        SUBSAMPLE_SEED,
-        MIN_POINTS,
-        MAX_COORDINATE,
-        MAX_EXTENT_DIAMETERS,
-        MIN_EXTENT_DIAMETERS,
+    return _core.clean_cloud(array, diameter, _clean_settings(max_points))
+
+
+def clean_depth_cloud(
+    depth: np.ndarray, K: np.ndarray, depth_scale: float, mask: np.ndarray | None, diameter: float, max_points: int
+) -> np.ndarray:
+    """``clean_cloud(cloud_from_depth(depth, K, mask, depth_scale), diameter,
+    max_points)`` of a :func:`checked_depth` image and ``K``: the same (n, 3)
+    float32 points (camera frame, metres) in one call to the Rust core,
+    without the whole cloud passing through numpy (a tracked frame keeps a
+    thousand of an object's tens of thousands of pixels)."""
+    box = _valid_box(depth, K, np.ones(depth.shape, bool) if mask is None else checked_mask(mask, depth.shape))
+    if box is None:
+        return clean_cloud(np.zeros((0, 3)), diameter, max_points)  # the same error as an empty cloud's
+    depth, valid, K = box
+    return _core.clean_depth_cloud(depth, valid, K, float(depth_scale), diameter, _clean_settings(max_points))
+
+
+@lru_cache(maxsize=16)
+def _clean_settings(max_points: int) -> _core.CleanSettings:
+    """The limits :func:`clean_cloud` passes to the Rust core."""
+    return _core.CleanSettings(
+        max_points=max_points,
+        seed=SUBSAMPLE_SEED,
+        min_points=MIN_POINTS,
+        max_coordinate=MAX_COORDINATE,
+        max_extent_diameters=MAX_EXTENT_DIAMETERS,
+        min_extent_diameters=MIN_EXTENT_DIAMETERS,
     )
 
 
@@ -255,19 +275,29 @@ def back_project(depth: np.ndarray, K: np.ndarray, valid: np.ndarray, depth_scal
     :func:`checked_depth` image, in row-major order (pixel centres, OpenCV).
     Runs in the Rust core without the GIL, on the valid pixels' bounding
     box only (its principal point shifted by the box corner: the same points)."""
+    box = _valid_box(depth, K, valid)
+    if box is None:
+        return np.zeros((0, 3))
+    depth, valid, K = box
+    return _core.back_project(depth, valid, K, float(depth_scale))
+
+
+def _valid_box(depth: np.ndarray, K: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``depth`` and ``valid`` cut to the bounding box of the valid pixels
+    (C-contiguous), with ``K``'s principal point shifted by the box corner:
+    the same points, fewer pixels to read. None when no pixel is valid."""
     valid = np.asarray(valid, dtype=bool)
     rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
     if not len(rows):
-        return np.zeros((0, 3))
+        return None
     top, bottom, left, right = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     K = K.copy()
     K[0, 2] -= left
     K[1, 2] -= top
-    return _core.back_project(
+    return (
         np.ascontiguousarray(depth[top:bottom, left:right]),
         np.ascontiguousarray(valid[top:bottom, left:right]),
         K,
-        float(depth_scale),
     )
 
 

@@ -22,14 +22,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from edgepose.cloud import DEPTH_SCALE_MM, back_project, checked_depth, checked_mask
+from edgepose.cloud import DEPTH_SCALE_MM, checked_depth, checked_mask, clean_depth_cloud
 from edgepose.codebook import Codebook
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.errors import EdgePoseError, InvalidArgumentError
 from edgepose.pose import Pose, check_estimate_inputs, check_types, pose_from_query
 from edgepose.search import Laps
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
-from edgepose.stages import Query, prepare_query
+from edgepose.stages import Query, query_of_cleaned
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,8 +89,10 @@ def estimate_many(
     def prepared(i: int) -> tuple[Query | None, Laps, EdgePoseError | None]:
         laps = Laps()
         try:
-            cloud = back_project(depth, K, masks[i], depth_scale)
-            query = prepare_query(cloud, codebooks[i], settings, (depth, K, depth_scale))
+            frame = (depth, K, depth_scale)
+            diameter = codebooks[i].model.diameter
+            cleaned = clean_depth_cloud(*frame, masks[i], diameter, settings.max_cloud_points)
+            query = query_of_cleaned(cleaned, codebooks[i], settings, frame)
         except EdgePoseError as e:
             return None, laps, e
         laps("prepare_query")

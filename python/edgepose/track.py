@@ -26,11 +26,20 @@ import dataclasses
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from edgepose.cloud import DEPTH_SCALE_MM, checked_frame, clean_cloud, cloud_from_depth
+from edgepose.cloud import (
+    DEPTH_SCALE_MM,
+    checked_depth,
+    checked_frame,
+    checked_mask,
+    clean_cloud,
+    clean_depth_cloud,
+    cloud_from_depth,
+)
 from edgepose.codebook import Codebook
 from edgepose.confidence import box_sides, evidence_of
 from edgepose.encoder import Encoder, default_encoder
@@ -133,15 +142,46 @@ class Tracker:
         metres), when known: poses are then checked against the scene
         around the object too, as by :func:`edgepose.estimate`."""
         frame = checked_frame(depth, K, depth_scale)
+        d = self.codebook.model.diameter
+        return self._update(frame, lambda: cloud, lambda count: clean_cloud(cloud, d, count))
+
+    def update_depth(
+        self, depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None, depth_scale: float = DEPTH_SCALE_MM
+    ) -> Pose:
+        """:meth:`update` on the cloud of a depth image, checked against the
+        rest of the image: ``depth / depth_scale`` is metres (1000: uint16
+        millimetres), ``K`` the 3×3 intrinsics, ``mask`` the object's pixels
+        (see :func:`edgepose.cloud_from_depth`). A tracked frame reads only
+        the pixels it uses."""
+        frame = (*checked_depth(depth, K, depth_scale), depth_scale)
+        mask = None if mask is None else checked_mask(mask, frame[0].shape)
+        d = self.codebook.model.diameter
+        return self._update(
+            frame,
+            lambda: cloud_from_depth(*frame[:2], mask, depth_scale),
+            lambda count: clean_depth_cloud(*frame, mask, d, count),
+        )
+
+    def _update(
+        self,
+        frame: tuple[np.ndarray, np.ndarray, float] | None,
+        cloud: Callable[[], object],
+        cleaned: Callable[[int], np.ndarray],
+    ) -> Pose:
+        """The frame's pose: tracked from the last one on ``cleaned(count)``
+        (at most ``count`` of the object's points, float32, as
+        :func:`edgepose.cloud.clean_cloud` keeps them), or estimated afresh
+        on ``cloud()`` when there is none or the tracked pose fails its check."""
         with self._lock:
             t0 = time.perf_counter()
             pose = None
             if self._last is not None:
-                pose = self._tracked(cloud, t0, frame)
+                pose = self._tracked(cleaned, t0, frame)
             if pose is None:
                 mode = "initialised" if self._last is None else "reinitialised"
+                depth, K, depth_scale = frame if frame is not None else (None, None, DEPTH_SCALE_MM)
                 found = estimate(
-                    cloud,
+                    cloud(),
                     self.codebook,
                     encoder=self.encoder,
                     settings=self.settings,
@@ -156,24 +196,18 @@ class Tracker:
             self._last = pose
             return pose
 
-    def update_depth(
-        self, depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None, depth_scale: float = DEPTH_SCALE_MM
-    ) -> Pose:
-        """:meth:`update` on the cloud of a depth image, checked against the
-        rest of the image: ``depth / depth_scale`` is metres (1000: uint16
-        millimetres), ``K`` the 3×3 intrinsics, ``mask`` the object's pixels
-        (see :func:`edgepose.cloud_from_depth`)."""
-        return self.update(cloud_from_depth(depth, K, mask, depth_scale), depth=depth, K=K, depth_scale=depth_scale)
-
-    def _tracked(self, cloud: object, t0: float, frame: tuple[np.ndarray, np.ndarray, float] | None) -> Pose | None:
-        """The last pose refined onto ``cloud``, or None when it fails the check
-        (``frame``: the checked depth image, K and depth scale, or None).
-        Raises InvalidCloudError for a cloud that cannot be the object."""
+    def _tracked(
+        self, cleaned: Callable[[int], np.ndarray], t0: float, frame: tuple[np.ndarray, np.ndarray, float] | None
+    ) -> Pose | None:
+        """The last pose refined onto the frame's points (``cleaned``, see
+        :meth:`_update`), or None when it fails the check (``frame``: the
+        checked depth image, K and depth scale, or None). Raises
+        InvalidCloudError for a cloud that cannot be the object."""
         last, codebook, track = self._last, self.codebook, self.track
         assert last is not None
         model = codebook.model
         d = model.diameter
-        seen = off_support_plane(clean_cloud(cloud, d, track.grid_points), frame, d, self.settings)
+        seen = off_support_plane(cleaned(track.grid_points), frame, d, self.settings)
         points = subsample(seen, track.points, self.settings.subsample_seed)
         R, t = last.R, last.t + last.R @ model.centre  # model frame → camera
         if track.velocity > 0 and self._previous is not None:

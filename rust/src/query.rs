@@ -47,10 +47,10 @@ pub fn back_project<T: Copy + Into<f64>>(
     camera: &Pinhole,
     depth_scale: f64,
 ) -> Vec<[f64; 3]> {
-    let mut points = Vec::new();
     if width == 0 {
-        return points;
+        return Vec::new();
     }
+    let mut points = Vec::with_capacity(mask.iter().filter(|m| **m).count());
     for (v, (depth_row, mask_row)) in depth
         .chunks_exact(width)
         .zip(mask.chunks_exact(width))

@@ -181,8 +181,20 @@ def prepare_query(
     from, for the scene-violation test (:func:`scene_around`) and, first,
     to drop the points the mask took from the surface the object stands on
     (:func:`on_support_plane`, ``settings.support_plane``)."""
+    cleaned = clean_cloud(cloud, codebook.model.diameter, settings.max_cloud_points)
+    return query_of_cleaned(cleaned, codebook, settings, frame)
+
+
+def query_of_cleaned(
+    cleaned: np.ndarray,
+    codebook: Codebook,
+    settings: EstimateSettings = DEFAULT_SETTINGS,
+    frame: tuple[np.ndarray, np.ndarray, float] | None = None,
+) -> Query:
+    """:func:`prepare_query` of points :func:`edgepose.cloud.clean_cloud`
+    (or :func:`edgepose.cloud.clean_depth_cloud`) already kept, at most
+    ``settings.max_cloud_points`` of them."""
     model = codebook.model
-    cleaned = clean_cloud(cloud, model.diameter, settings.max_cloud_points)
     points, spacing, centroid, r_corr, query_map, keypoints = _core.prepare_query(
         off_support_plane(cleaned, frame, model.diameter, settings),
         model.diameter,

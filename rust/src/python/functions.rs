@@ -27,7 +27,9 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(segment_object, m)?)?;
     m.add_function(wrap_pyfunction!(back_project, m)?)?;
     m.add_function(wrap_pyfunction!(on_support_plane, m)?)?;
+    m.add_class::<PyCleanSettings>()?;
     m.add_function(wrap_pyfunction!(clean_cloud, m)?)?;
+    m.add_function(wrap_pyfunction!(clean_depth_cloud, m)?)?;
     m.add_function(wrap_pyfunction!(prepare_query, m)?)?;
     m.add_function(wrap_pyfunction!(ray_alignment, m)?)?;
     Ok(())
@@ -230,40 +232,63 @@ fn segment_object<'py>(
     })
 }
 
+/// The limits of [`query::clean_cloud`] ([`CleanSettings`]), built once on
+/// the Python side (`edgepose.cloud`, where each is defined).
+#[pyclass(frozen, name = "CleanSettings", module = "edgepose._core")]
+pub struct PyCleanSettings {
+    inner: CleanSettings,
+}
+
+#[pymethods]
+impl PyCleanSettings {
+    #[new]
+    #[pyo3(signature = (*, max_points, seed, min_points, max_coordinate, max_extent_diameters, min_extent_diameters))]
+    fn new(
+        max_points: usize,
+        seed: u64,
+        min_points: usize,
+        max_coordinate: f64,
+        max_extent_diameters: f64,
+        min_extent_diameters: f64,
+    ) -> Self {
+        Self {
+            inner: CleanSettings {
+                max_points,
+                seed,
+                min_points,
+                max_coordinate,
+                max_extent_diameters,
+                min_extent_diameters,
+            },
+        }
+    }
+
+    fn __repr__(&self) -> String {
+        format!("{:?}", self.inner)
+    }
+}
+
 /// [`query::clean_cloud`] of an (N, 3) float32 or float64 cloud (camera
 /// frame, metres; any strides): the points `estimate` matches, as an (n, 3)
 /// float32 array; `InvalidCloudError` naming the problem otherwise.
 #[pyfunction]
-#[allow(clippy::too_many_arguments)]
 fn clean_cloud<'py>(
     py: Python<'py>,
     cloud: &Bound<'py, PyAny>,
     diameter: f64,
-    max_points: usize,
-    seed: u64,
-    min_points: usize,
-    max_coordinate: f64,
-    max_extent_diameters: f64,
-    min_extent_diameters: f64,
+    settings: &PyCleanSettings,
 ) -> PyResult<Bound<'py, PyArray2<f32>>> {
     guarded(|| {
-        let settings = CleanSettings {
-            max_points,
-            seed,
-            min_points,
-            max_coordinate,
-            max_extent_diameters,
-            min_extent_diameters,
-        };
+        let settings = &settings.inner;
         let cleaned = if let Ok(array) = cloud.extract::<PyReadonlyArray2<'py, f32>>() {
-            clean_rows(py, &array, diameter, &settings)?
+            clean_rows(py, &array, diameter, settings)?
         } else {
             let array = cloud.extract::<PyReadonlyArray2<'py, f64>>().map_err(|_| {
                 InvalidCloudError::new_err(
                     "cloud must be a float32 or float64 array of shape (N, 3)",
                 )
             })?;
-            clean_rows(py, &array, diameter, &settings)?
+            clean_rows(py, &array, diameter, settings)?
         };
         let points = cleaned.map_err(|problem| InvalidCloudError::new_err(problem.to_string()))?;
         Ok(points_array(py, &points))
@@ -469,18 +494,7 @@ fn back_project<'py>(
     depth_scale: f64,
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     guarded(|| {
-        let camera = pinhole(&k)?;
-        let image = DepthImage::from_any(depth)?;
-        if image.shape() != mask.shape() {
-            return Err(InvalidCloudError::new_err(format!(
-                "mask shape {:?} differs from depth shape {:?}",
-                mask.shape(),
-                image.shape()
-            )));
-        }
-        let flags = mask
-            .as_slice()
-            .map_err(|_| PyValueError::new_err("mask must be C-contiguous"))?;
+        let (image, flags, camera) = masked_image(depth, &mask, &k)?;
         let width = image.shape()[1];
         let points = with_pixels!(py, image, |d| query::back_project(
             d,
@@ -490,11 +504,58 @@ fn back_project<'py>(
             depth_scale
         ));
         Ok(
-            Array::from_shape_vec((points.len(), 3), points.as_flattened().to_vec())
+            Array::from_shape_vec((points.len(), 3), points.into_flattened())
                 .expect("n × 3")
                 .into_pyarray(py),
         )
     })
+}
+
+/// [`clean_cloud`] of the cloud [`back_project`] makes of `mask` in `depth`,
+/// in one call: the same points, without the whole cloud crossing to Python.
+#[pyfunction]
+fn clean_depth_cloud<'py>(
+    py: Python<'py>,
+    depth: &Bound<'py, PyAny>,
+    mask: PyReadonlyArray2<'py, bool>,
+    k: PyReadonlyArray2<'py, f64>,
+    depth_scale: f64,
+    diameter: f64,
+    settings: &PyCleanSettings,
+) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    guarded(|| {
+        let settings = &settings.inner;
+        let (image, flags, camera) = masked_image(depth, &mask, &k)?;
+        let width = image.shape()[1];
+        let cleaned = with_pixels!(py, image, |d| {
+            let points = query::back_project(d, flags, width, &camera, depth_scale);
+            query::clean_cloud(points.len(), |i| points[i], diameter, settings)
+        });
+        let points = cleaned.map_err(|problem| InvalidCloudError::new_err(problem.to_string()))?;
+        Ok(points_array(py, &points))
+    })
+}
+
+/// A [`DepthImage`], its `mask`'s flags (same shape, C-contiguous) and the
+/// camera of `k`; `InvalidCloudError` or `ValueError` otherwise.
+fn masked_image<'py, 'a>(
+    depth: &Bound<'py, PyAny>,
+    mask: &'a PyReadonlyArray2<'py, bool>,
+    k: &PyReadonlyArray2<'py, f64>,
+) -> PyResult<(DepthImage<'py>, &'a [bool], Pinhole)> {
+    let camera = pinhole(k)?;
+    let image = DepthImage::from_any(depth)?;
+    if image.shape() != mask.shape() {
+        return Err(InvalidCloudError::new_err(format!(
+            "mask shape {:?} differs from depth shape {:?}",
+            mask.shape(),
+            image.shape()
+        )));
+    }
+    let flags = mask
+        .as_slice()
+        .map_err(|_| PyValueError::new_err("mask must be C-contiguous"))?;
+    Ok((image, flags, camera))
 }
 
 /// [`support::on_support_plane`]: (n,) bool, the `points` ((n, 3) float32,
