@@ -54,7 +54,6 @@ from edgepose.stages import (
     score_poses,
     subsample,
 )
-from edgepose.views import rotation_about, rotation_angle
 
 
 @dataclass(frozen=True)
@@ -219,10 +218,14 @@ class Tracker:
         icp = codebook.index.refine(points, R[None], t[None], track.icp_iterations, track.icp_max_distance * d)
         R, t = icp.rotations[0], icp.translations[0]
         scene = None if frame is None else scene_of_pose(*frame, codebook, R, t) or scene_around(*frame, seen, d)
-        query = Query(seen, _spacing(seen), seen.mean(axis=0, dtype=np.float64), np.eye(3), seen[:0], seen[:0], scene)
+        sides = box_sides(seen)
+        query = Query(
+            seen, _spacing(sides, len(seen)), seen.mean(axis=0, dtype=np.float64), _EYE, seen[:0], seen[:0], scene
+        )
         scores = score_poses(query, codebook, points, R[None], t[None], track.inlier_distance * d, 0.0, self.settings)
+        tight_distance = self.settings.hypothesis_inlier_distance * d
         tight = score_poses(
-            query, codebook, points, R[None], t[None], self.settings.hypothesis_inlier_distance * d, 0.0, self.settings
+            query, codebook, points, R[None], t[None], tight_distance, 0.0, self.settings, fit_only=True
         )
         if not (
             np.isfinite(icp.rmse[0])
@@ -246,7 +249,7 @@ class Tracker:
             refined=True,
             margin=last.evidence.get("margin", 1.0),
             off_silhouette=scores.off_silhouette[0],
-            observed_extent=math.hypot(*box_sides(seen)) / d,
+            observed_extent=math.hypot(*sides) / d,
             translation_constraint=tight.translation_constraint[0],
             flip_margin=last.evidence.get("flip_margin", 1.0),
             rmse_ratio=last.evidence.get("rmse_ratio", 0.0),
@@ -283,17 +286,33 @@ class Tracker:
 def _scaled_turn(R: np.ndarray, share: float) -> np.ndarray:
     """The rotation about the same axis as ``R`` by ``share`` of its angle,
     in the same direction. A frame's turn is well below 180°, so its axis,
-    with its sign, comes from the skew part of ``R``."""
-    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    length = float(np.linalg.norm(axis))  # 2 sin(angle)
+    with its sign, comes from the skew part of ``R``. Scalar arithmetic:
+    numpy's per-call cost is most of a 3×3's."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    x, y, z = r21 - r12, r02 - r20, r10 - r01
+    length = math.sqrt(x * x + y * y + z * z)  # 2 sin(angle)
     if length < 1e-9:
         return np.eye(3)
-    return rotation_about(axis / length, share * rotation_angle(R))
+    x, y, z = x / length, y / length, z / length
+    angle = share * math.acos(min(max((r00 + r11 + r22 - 1.0) / 2.0, -1.0), 1.0))
+    s, c = math.sin(angle), 1.0 - math.cos(angle)  # Rodrigues: I + s K + c K²
+    return np.array(
+        [
+            [1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y],
+            [c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x],
+            [c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)],
+        ]
+    )
 
 
-def _spacing(points: np.ndarray) -> float:
-    """Typical distance between neighbouring points of a surface patch,
-    metres: the square root of its area (the two larger bounding-box sides)
-    per point. Sizes the free-space check's grid."""
-    sides = sorted(box_sides(points))
-    return math.sqrt(sides[1] * sides[2] / max(len(points), 1))
+def _spacing(sides: list[float], count: int) -> float:
+    """Typical distance between neighbouring points of a surface patch of
+    ``count`` points, metres: the square root of its area (the two larger
+    of its bounding-box ``sides``) per point. Sizes the free-space check's grid."""
+    ordered = sorted(sides)
+    return math.sqrt(ordered[1] * ordered[2] / max(count, 1))
+
+
+#: The tracker's query is not turned to the optical axis.
+_EYE = np.eye(3)
+_EYE.flags.writeable = False

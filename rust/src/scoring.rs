@@ -262,7 +262,8 @@ pub struct ScoreSettings {
     pub inlier_distance: f64,
     /// A model point this much in front of the observed depth violates free space.
     pub free_space_tolerance: f64,
-    /// Every `model_stride`-th model point takes part in the free-space test.
+    /// Every `model_stride`-th model point takes part in the free-space
+    /// test; 0: no free-space test (its terms read 0: the fit terms only).
     pub model_stride: usize,
 }
 
@@ -401,8 +402,17 @@ fn score_pose(
     };
     let (mut facing, mut on_rays, mut violations, mut in_front_of_scene) =
         (0usize, 0usize, 0usize, 0usize);
+    let tested = if settings.model_stride == 0 {
+        0
+    } else {
+        index.points().len()
+    };
     let stride = settings.model_stride.max(1);
-    for (p, n) in index.points().iter().zip(index.normals()).step_by(stride) {
+    for (p, n) in index.points()[..tested]
+        .iter()
+        .zip(index.normals())
+        .step_by(stride)
+    {
         let pc = pose.apply(p);
         let nc = pose.rotation * Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
         if nc.dot(&pc) >= 0.0 {
@@ -554,6 +564,35 @@ mod tests {
         );
         assert!(scores[0].free_space_violation < 0.005, "{scores:?}");
         assert!(scores[1].free_space_violation > 0.03, "{scores:?}");
+        // A model stride of 0 leaves the free-space test out: the fit terms alone.
+        let fit_only = ScoreSettings {
+            model_stride: 0,
+            ..settings()
+        };
+        for (whole, fit) in scores.iter().zip(score_poses(
+            &index,
+            &cloud,
+            &grid,
+            &[truth, flip],
+            &fit_only,
+        )) {
+            assert_eq!(
+                (fit.fit, fit.inlier_fraction, fit.translation_constraint),
+                (
+                    whole.fit,
+                    whole.inlier_fraction,
+                    whole.translation_constraint
+                )
+            );
+            assert_eq!(
+                (
+                    fit.free_space_violation,
+                    fit.off_silhouette,
+                    fit.scene_violation
+                ),
+                (0.0, 0.0, 0.0)
+            );
+        }
     }
 
     #[test]

@@ -369,7 +369,7 @@ class RivalSearch:
             settings.candidate_inlier_distance * d,
             settings.hypothesis_inlier_distance * d,
             free_space_tolerance(query, d, settings),
-            settings.free_space_model_stride,
+            max(settings.free_space_model_stride, 1),
             RIVAL_DISTANCE * d,
             RIVAL_POINTS,
             codebook.symmetry.symmetric,

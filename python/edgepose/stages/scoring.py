@@ -67,10 +67,14 @@ def score_poses(
     free_space_weight: float,
     settings: EstimateSettings = DEFAULT_SETTINGS,
     free_space: _core.DepthGrid | None = None,
+    *,
+    fit_only: bool = False,
 ) -> PoseScores:
     """Stage 4: the terms of each pose against the ``observed`` points (camera
     frame) and the free space of the whole query (``free_space``: another
-    grid of it than :attr:`Query.free_space`). ``inlier_distance`` is in metres."""
+    grid of it than :attr:`Query.free_space`). ``inlier_distance`` is in
+    metres. ``fit_only``: the fit terms alone (fit, inlier fraction,
+    translation constraint), the free-space terms left at 0."""
     d = codebook.model.diameter
     fit, inliers, violation, off_silhouette, constraint, scene = codebook.index.score(
         observed,
@@ -79,7 +83,7 @@ def score_poses(
         np.ascontiguousarray(translations),
         inlier_distance,
         free_space_tolerance(query, d, settings),
-        settings.free_space_model_stride,
+        0 if fit_only else max(settings.free_space_model_stride, 1),
     )
     cost = fit / inlier_distance + free_space_weight * (violation + scene)
     return PoseScores(fit, inliers, violation, cost, off_silhouette, constraint, scene)
