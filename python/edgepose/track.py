@@ -46,6 +46,7 @@ from edgepose.encoder import Encoder, default_encoder
 from edgepose.pose import Pose, check_types, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages import (
+    PoseScores,
     Query,
     near_the_cloud,
     off_support_plane,
@@ -195,6 +196,20 @@ class Tracker:
             self._last = pose
             return pose
 
+    def _predicted(self) -> tuple[np.ndarray, np.ndarray]:
+        """This frame's pose (model frame → camera: R, t of the model's
+        centre) predicted from the last: the last frame's motion, as a turn
+        about the object's centre and a shift of that centre, repeated
+        (damped: noise must not build up)."""
+        last, prev, track = self._last, self._previous, self.track
+        assert last is not None
+        centre = self.codebook.model.centre
+        R, t = last.R, last.t + last.R @ centre
+        if track.velocity > 0 and prev is not None:
+            R = _scaled_turn(R @ prev.R.T, track.velocity) @ R
+            t = t + track.velocity * (t - (prev.t + prev.R @ centre))
+        return R, t
+
     def _tracked(
         self, cleaned: Callable[[int], np.ndarray], t0: float, frame: tuple[np.ndarray, np.ndarray, float] | None
     ) -> Pose | None:
@@ -208,13 +223,7 @@ class Tracker:
         d = model.diameter
         seen = off_support_plane(cleaned(track.grid_points), frame, d, self.settings)
         points = subsample(seen, track.points, self.settings.subsample_seed)
-        R, t = last.R, last.t + last.R @ model.centre  # model frame → camera
-        if track.velocity > 0 and self._previous is not None:
-            # The last frame's motion, as a turn about the object's centre and
-            # a shift of that centre, repeated (damped: noise must not build up).
-            prev = self._previous
-            R = _scaled_turn(R @ prev.R.T, track.velocity) @ R
-            t = t + track.velocity * (t - (prev.t + prev.R @ model.centre))
+        R, t = self._predicted()
         icp = codebook.index.refine(points, R[None], t[None], track.icp_iterations, track.icp_max_distance * d)
         R, t = icp.rotations[0], icp.translations[0]
         scene = None if frame is None else scene_of_pose(*frame, codebook, R, t) or scene_around(*frame, seen, d)
@@ -236,28 +245,7 @@ class Tracker:
             and near_the_cloud(query, codebook, t[None], self.settings)[0]
         ):
             return None
-        # What tracking does not recompute (the retrieval's cosine score, how
-        # far the pose stood out from its rivals) is carried from the estimate
-        # that started the track.
-        evidence = evidence_of(
-            inlier_fraction=tight.inlier_fraction[0],
-            loose_inlier_fraction=scores.inlier_fraction[0],
-            fit_ratio=tight.fit[0] / (self.settings.hypothesis_inlier_distance * d),
-            free_space_violation=scores.free_space_violation[0],
-            score=last.evidence.get("score", last.score),
-            searches=1,
-            refined=True,
-            margin=last.evidence.get("margin", 1.0),
-            off_silhouette=scores.off_silhouette[0],
-            observed_extent=math.hypot(*sides) / d,
-            translation_constraint=tight.translation_constraint[0],
-            flip_margin=last.evidence.get("flip_margin", 1.0),
-            rmse_ratio=last.evidence.get("rmse_ratio", 0.0),
-            flip_fit_ratio=last.evidence.get("flip_fit_ratio", 0.0),
-            alternatives=int(last.evidence.get("alternatives", 0.0)),
-            alternative_margin=last.evidence.get("alternative_margin", 1.0),
-            scene_violation=scores.scene_violation[0],
-        )
+        evidence = _tracked_evidence(last, scores, tight, math.hypot(*sides) / d, tight_distance)
         judge = self.encoder.judge(with_scene=scene is not None)
         confidence = judge.probability(evidence) if judge else float("nan")
         if last.unseen_turn is not None:  # tracking cannot tell the turn the view left open either
@@ -281,6 +269,37 @@ class Tracker:
             alternatives=(),
             mode="tracked",
         )
+
+
+def _tracked_evidence(
+    last: Pose, scores: PoseScores, tight: PoseScores, observed_extent: float, tight_distance: float
+) -> dict[str, float]:
+    """The confidence model's evidence for a tracked pose: its ``scores`` at
+    the tracker's inlier distance and ``tight`` at ``tight_distance``
+    (metres, the search's hypothesis distance). What tracking does not
+    recompute (the retrieval's cosine score, how far the pose stood out
+    from its rivals) is carried from ``last``, back to the estimate that
+    started the track."""
+    carried = last.evidence
+    return evidence_of(
+        inlier_fraction=tight.inlier_fraction[0],
+        loose_inlier_fraction=scores.inlier_fraction[0],
+        fit_ratio=tight.fit[0] / tight_distance,
+        free_space_violation=scores.free_space_violation[0],
+        score=carried.get("score", last.score),
+        searches=1,
+        refined=True,
+        margin=carried.get("margin", 1.0),
+        off_silhouette=scores.off_silhouette[0],
+        observed_extent=observed_extent,
+        translation_constraint=tight.translation_constraint[0],
+        flip_margin=carried.get("flip_margin", 1.0),
+        rmse_ratio=carried.get("rmse_ratio", 0.0),
+        flip_fit_ratio=carried.get("flip_fit_ratio", 0.0),
+        alternatives=int(carried.get("alternatives", 0.0)),
+        alternative_margin=carried.get("alternative_margin", 1.0),
+        scene_violation=scores.scene_violation[0],
+    )
 
 
 def _scaled_turn(R: np.ndarray, share: float) -> np.ndarray:
