@@ -368,6 +368,15 @@ def test_track_follows_depth_frames_and_reports_a_bad_frame(drill, tmp_path):
             T_est = np.array([float(row[f"m{r}{c}"]) for r in range(4) for c in range(4)]).reshape(4, 4)
             e = pose_errors(codebook.model.mesh_points, T_est, T_true, codebook.model.diameter, False)
             assert e.correct_add_or_s and float(row["confidence"]) >= 0.5
+    # A frame file that cannot be read is reported the same way; the track goes on.
+    (tmp_path / "frames" / "0004.png").write_bytes(b"\x89PNG not really")
+    out = run(
+        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", " ".join(str(x) for x in view.camera.K.ravel()),
+        "--masks", str(tmp_path / "masks"), "-o", str(tmp_path / "again.csv"),
+    )  # fmt: skip
+    assert out.returncode == 0 and "4 tracked" not in out.stdout and "2 without a pose" in out.stdout, out.stdout
+    rows = list(csv.DictReader((tmp_path / "again.csv").open()))
+    assert rows[4]["mode"].startswith("error: ") and rows[5]["m00"] != ""
     fails_cleanly(run("track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames")), "need --K")
 
 

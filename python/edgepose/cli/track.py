@@ -58,11 +58,9 @@ def track(
     4×4 T_cam_obj row-major (m00 … m33, metres), mode (initialised, tracked, reinitialised, or error with the
     reason), confidence, ms. Ends with a summary line.
     """
-    import numpy as np
-
     import edgepose
     from edgepose import io
-    from edgepose.viz import Frame, recorder
+    from edgepose.viz import Frame, NullRecorder, recorder
 
     with handle_errors():
         book = edgepose.Codebook.load(codebook)
@@ -80,18 +78,15 @@ def track(
         model_points = book.model.mesh_points
         rows, times, modes = [], [], []
         for i, path in enumerate(paths):
-            depth = None
-            if path.suffix.lower() == ".png":
-                assert camera is not None and masks is not None  # checked above
-                depth = io.read_depth_png(path)
-                mask = io.read_mask_png(_mask_for(path, masks))
-                cloud = edgepose.cloud_from_depth(depth, camera, mask, depth_scale=depth_scale)
-            else:
-                cloud = io.read_cloud(path)
+            depth = mask = cloud = None
             try:  # a depth frame also checks the pose against the scene and drops the table (Tracker.update)
-                pose = tracker.update(
-                    cloud, depth=depth, K=camera if depth is not None else None, depth_scale=depth_scale
-                )
+                if path.suffix.lower() == ".png":
+                    assert camera is not None and masks is not None  # checked above
+                    depth, mask = io.read_depth_png(path), io.read_mask_png(_mask_for(path, masks))
+                    pose = tracker.update_depth(depth, camera, mask, depth_scale=depth_scale)
+                else:
+                    cloud = io.read_cloud(path)
+                    pose = tracker.update(cloud)
             except edgepose.EdgePoseError as e:  # an empty or bad frame: reported, the track goes on
                 rows.append([i, path.name, *([""] * 16), f"error: {e}", "", ""])
                 modes.append("error")
@@ -100,12 +95,24 @@ def track(
             times.append(ms)
             modes.append(pose.mode)
             rows.append(_pose_row(i, path, pose, ms))
-            log.log(codebook.stem, Frame(cloud, model_points, pose.matrix, K=camera, depth=depth))
+            if not isinstance(log, NullRecorder):  # the whole cloud is made for the picture only
+                if cloud is None:
+                    assert depth is not None and camera is not None
+                    cloud = edgepose.cloud_from_depth(depth, camera, mask, depth_scale=depth_scale)
+                log.log(codebook.stem, Frame(cloud, model_points, pose.matrix, K=camera, depth=depth))
         _write_poses(out, rows)
+    _print_summary(len(paths), modes, times, out)
+
+
+def _print_summary(frames: int, modes: list[str], times: list[float], out: Path) -> None:
+    """One line: how many frames were tracked, initialised, re-initialised
+    or left without a pose, and the median milliseconds per frame."""
+    import numpy as np
+
     counts = {m: modes.count(m) for m in ("initialised", "tracked", "reinitialised", "error")}
     tracked = [t for t, m in zip(times, [m for m in modes if m != "error"]) if m == "tracked"]
     stdout_console().print(
-        f"{len(paths)} frames: {counts['tracked']} tracked, {counts['initialised']} initialised, "
+        f"{frames} frames: {counts['tracked']} tracked, {counts['initialised']} initialised, "
         f"{counts['reinitialised']} re-initialised, {counts['error']} without a pose; "
         f"median {np.median(times) if times else float('nan'):.2f} ms per frame"
         f"{f', tracked {np.median(tracked):.2f} ms' if tracked else ''}; poses in {out}"
