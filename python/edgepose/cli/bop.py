@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
@@ -22,6 +22,11 @@ from edgepose.cli.app import (
     stderr_console,
     stdout_console,
 )
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from edgepose.eval.bop import BopDataset, BopRow, BopTarget
 
 
 def bop(
@@ -72,22 +77,7 @@ def bop(
     err = stderr_console()
     with handle_errors():
         dataset = BopDataset(dataset_dir, split)
-        try:
-            scene_ids = None if scenes is None else [int(s) for s in scenes.split(",") if s.strip()]
-        except ValueError:
-            raise Failure(f"--scenes must be comma-separated scene numbers, got {scenes!r}") from None
-        wanted = dataset.targets(targets, scene_ids)
-        if images is not None:
-            keep = sorted({(t.scene_id, t.im_id) for t in wanted})[: max(images, 0)]
-            wanted = [t for t in wanted if (t.scene_id, t.im_id) in set(keep)]
-        if not wanted:
-            raise Failure(f"{dataset_dir}: no targets to estimate (check --split, --scenes and --targets)")
-        scored = all(dataset.has_ground_truth(s) for s in {t.scene_id for t in wanted})
-        if masks == "gt" and not scored:
-            raise Failure(
-                f"{dataset_dir}: this split's ground truth (scene_gt.json, mask_visib/) is not published; "
-                "give a detector's masks with --masks DETECTIONS.json"
-            )
+        wanted, scored = _targets_to_run(dataset, targets, scenes, images, masks)
         detections = None if masks == "gt" else read_detections(masks)
         obj_ids = sorted({t.obj_id for t in wanted})
         executor = executor_for(ray or ray_address is not None, ray_address, cpus_per_task)
@@ -117,10 +107,42 @@ def bop(
             (out / f"{stem}_scores.json").write_text(json.dumps(scores.to_json(), indent=1) + "\n")
             (out / f"{stem}_scores.md").write_text(table)
     stdout_console().print(table, markup=False)
+    _print_run(err, rows, wanted, image_count, wall, out / f"{stem}.csv")
+
+
+def _targets_to_run(
+    dataset: "BopDataset", targets: Path | None, scenes: str | None, images: int | None, masks: str
+) -> tuple[list["BopTarget"], bool]:
+    """The targets ``edgepose bop`` estimates (``--targets``, ``--scenes``,
+    ``--images``) and whether their ground truth is published (so they can be
+    scored); Failure when there are none, or when ``--masks gt`` has no masks."""
+    try:
+        scene_ids = None if scenes is None else [int(s) for s in scenes.split(",") if s.strip()]
+    except ValueError:
+        raise Failure(f"--scenes must be comma-separated scene numbers, got {scenes!r}") from None
+    wanted = dataset.targets(targets, scene_ids)
+    if images is not None:
+        keep = set(sorted({(t.scene_id, t.im_id) for t in wanted})[: max(images, 0)])
+        wanted = [t for t in wanted if (t.scene_id, t.im_id) in keep]
+    if not wanted:
+        raise Failure(f"{dataset.root}: no targets to estimate (check --split, --scenes and --targets)")
+    scored = all(dataset.has_ground_truth(s) for s in {t.scene_id for t in wanted})
+    if masks == "gt" and not scored:
+        raise Failure(
+            f"{dataset.root}: this split's ground truth (scene_gt.json, mask_visib/) is not published; "
+            "give a detector's masks with --masks DETECTIONS.json"
+        )
+    return wanted, scored
+
+
+def _print_run(
+    err: "Console", rows: list["BopRow"], wanted: list["BopTarget"], images: int, wall: float, csv: Path
+) -> None:
+    """The run's last line (on stderr): estimates, targets, images, wall time, per-image median."""
     times = sorted({(r.scene_id, r.im_id): r.time for r in rows}.values())
     median = f"{1000 * float(np.median(times)):.1f} ms" if times else "n/a"
     err.print(
-        f"{len(rows)} estimates of {sum(t.inst_count for t in wanted)} targets in {image_count} images "
+        f"{len(rows)} estimates of {sum(t.inst_count for t in wanted)} targets in {images} images "
         f"({wall:.1f} s with image loading; per-image time median {median}); "
-        f"wrote {out / (stem + '.csv')} and the scores beside it"
+        f"wrote {csv} and the scores beside it"
     )
