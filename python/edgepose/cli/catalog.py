@@ -116,30 +116,10 @@ def evaluate(
     then include the tasks' competition for the CPUs).
     """
     from edgepose.catalog import evaluate_catalog, find_meshes
-    from edgepose.eval.benchmark import merge_runs, summarise_confidence
-    from edgepose.eval.methods import create_method, parse_methods
-    from edgepose.eval.stress import STRESS_LEVELS
-    from edgepose.report import confidence_rows, eval_table, progress, rich_table
-    from edgepose.viz import save_reliability_png
+    from edgepose.report import progress
 
     with handle_errors():
-        try:
-            chosen = parse_methods(methods)
-        except ValueError as e:
-            raise Failure(str(e)) from None
-        if views < 1:
-            raise Failure(f"--views must be at least 1, got {views}")
-        if stress not in STRESS_LEVELS:
-            raise Failure(f"--stress must be one of {', '.join(STRESS_LEVELS)}, got {stress!r}")
-        if reliability is not None and not any(m.startswith("edgepose") for m in chosen):
-            raise Failure("--reliability needs an edgepose method: only edgepose gives confidences")
-        if occluders and stress != "clean":
-            raise Failure("--occluders applies to the clean level only; stress levels set their own occluders")
-        for name in chosen:
-            try:
-                create_method(name)
-            except ImportError as e:
-                raise Failure(f"{name} needs the baselines extra ({e})") from None
+        chosen = _checked_evaluation(methods, views, stress, reliability, occluders)
         files = find_meshes(meshes)
         executor = executor_for(ray or ray_address is not None, ray_address, cpus_per_task)
     with progress(stderr_console(), "evaluating", len(files)) as on_result, handle_errors():
@@ -153,31 +133,70 @@ def evaluate(
             executor=executor,
             on_result=on_result,
         )
-    evaluated = [r for r in results if not r.failed]
-    if evaluated:
-        runs = [merge_runs(name, [r.runs[name] for r in evaluated]) for name in chosen]
-        title = (
-            f"{views} rendered views per object (seed {seed}, stress {stress}, {occluders} occluders); "
-            "correct = error < 0.1 × diameter"
-        )
-        symmetric_names = {r.name for r in evaluated if r.symmetric}
-        stdout_console().print(eval_table(runs, [r.name for r in evaluated], symmetric_names, title))
-        header, rows = confidence_rows({run.name: run.views for run in runs})
-        if rows:
-            stdout_console().print(
-                rich_table(f"confidence at stress {stress}", header, "l" + "r" * (len(header) - 1), rows)
-            )
-        if reliability is not None:
-            with_confidence = [r for r in runs if summarise_confidence(r.views) is not None]
-            save_reliability_png(
-                reliability,
-                {
-                    r.name: (
-                        np.array([v.confidence for v in r.views]),
-                        np.array([v.errors.correct_add_or_s for v in r.views]),
-                    )
-                    for r in with_confidence
-                },
-            )
-            stdout_console().print(f"reliability diagram: {reliability}")
+    _print_evaluation(results, chosen, views, seed, stress, occluders, reliability)
     exit_if_failed(results)
+
+
+def _checked_evaluation(methods: str, views: int, stress: str, reliability: Path | None, occluders: int) -> list[str]:
+    """The methods ``edgepose eval`` runs, after checking its options fit
+    together (and that each method's extra is installed); Failure otherwise."""
+    from edgepose.eval.methods import create_method, parse_methods
+    from edgepose.eval.stress import STRESS_LEVELS
+
+    try:
+        chosen = parse_methods(methods)
+    except ValueError as e:
+        raise Failure(str(e)) from None
+    if views < 1:
+        raise Failure(f"--views must be at least 1, got {views}")
+    if stress not in STRESS_LEVELS:
+        raise Failure(f"--stress must be one of {', '.join(STRESS_LEVELS)}, got {stress!r}")
+    if reliability is not None and not any(m.startswith("edgepose") for m in chosen):
+        raise Failure("--reliability needs an edgepose method: only edgepose gives confidences")
+    if occluders and stress != "clean":
+        raise Failure("--occluders applies to the clean level only; stress levels set their own occluders")
+    for name in chosen:
+        try:
+            create_method(name)
+        except ImportError as e:
+            raise Failure(f"{name} needs the baselines extra ({e})") from None
+    return chosen
+
+
+def _print_evaluation(
+    results: list, chosen: list[str], views: int, seed: int, stress: str, occluders: int, reliability: Path | None
+) -> None:
+    """The accuracy table of the evaluated objects, the confidence table, and
+    the reliability diagram when asked for."""
+    from edgepose.eval.benchmark import merge_runs, summarise_confidence
+    from edgepose.report import confidence_rows, eval_table, rich_table
+    from edgepose.viz import save_reliability_png
+
+    evaluated = [r for r in results if not r.failed]
+    if not evaluated:
+        return
+    runs = [merge_runs(name, [r.runs[name] for r in evaluated]) for name in chosen]
+    title = (
+        f"{views} rendered views per object (seed {seed}, stress {stress}, {occluders} occluders); "
+        "correct = error < 0.1 × diameter"
+    )
+    symmetric_names = {r.name for r in evaluated if r.symmetric}
+    stdout_console().print(eval_table(runs, [r.name for r in evaluated], symmetric_names, title))
+    header, rows = confidence_rows({run.name: run.views for run in runs})
+    if rows:
+        stdout_console().print(
+            rich_table(f"confidence at stress {stress}", header, "l" + "r" * (len(header) - 1), rows)
+        )
+    if reliability is not None:
+        with_confidence = [r for r in runs if summarise_confidence(r.views) is not None]
+        save_reliability_png(
+            reliability,
+            {
+                r.name: (
+                    np.array([v.confidence for v in r.views]),
+                    np.array([v.errors.correct_add_or_s for v in r.views]),
+                )
+                for r in with_confidence
+            },
+        )
+        stdout_console().print(f"reliability diagram: {reliability}")
