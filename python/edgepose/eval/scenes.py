@@ -16,9 +16,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from edgepose.cloud import cloud_from_depth, dilate, erode
+from edgepose.cloud import cloud_from_depth
 from edgepose.eval.render import LINEMOD_CAMERA, Camera, random_pose, rasterize_depth, render_view
-from edgepose.eval.stress import HOLE_PATCHES, STRESS_LEVELS, TABLE_ELEVATION_DEG, Stress, noise_sigma
+from edgepose.eval.sensor import detector_mask, mix_spill_ring, recorded, sensed
+from edgepose.eval.stress import STRESS_LEVELS, TABLE_ELEVATION_DEG, Stress, noise_sigma
 
 if TYPE_CHECKING:
     import trimesh
@@ -91,49 +92,120 @@ def render_scene(
     and depth noise, mixed pixels in the spill ring, 1 mm quantisation and
     dropout; the detector mask is the true visible mask dilated, eroded
     and/or cut."""
-    import trimesh.transformations as tf
-
     stress = STRESS_LEVELS[stress] if isinstance(stress, str) else stress
     if not stress.background:
         return _plain_view(mesh, stress, seed, T_cam_obj, camera)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(seed)  # every draw below, in this order: a seed is one scene
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     box_centre = vertices.min(0) / 2 + vertices.max(0) / 2
-    if stress.resting:  # the table's normal (camera frame), seen from the elevation drawn
-        elevation = np.radians(rng.uniform(*TABLE_ELEVATION_DEG))
-        up = np.array([0.0, -np.cos(elevation), -np.sin(elevation)])
-    if T_cam_obj is None:
-        T_cam_obj = random_pose(rng, camera, stress.distance, centre=box_centre)
-        if stress.resting:  # same box centre in the camera frame, turned to rest on the table
-            R = _resting_rotation(mesh, up, rng)
-            T_cam_obj[:3, 3] += (T_cam_obj[:3, :3] - R) @ box_centre
-            T_cam_obj[:3, :3] = R
-    T_cam_obj = np.asarray(T_cam_obj, dtype=np.float64)
+    T_cam_obj, up = _scene_pose(mesh, stress, rng, camera, T_cam_obj, box_centre)
     posed = vertices @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
     centre = T_cam_obj[:3, :3] @ box_centre + T_cam_obj[:3, 3]
     z_obj = rasterize_depth(posed, np.asarray(mesh.faces), camera)
     alone = np.isfinite(z_obj)
+    normal, offset = _support_plane(stress, posed, centre, up, rng)
+    rays, z_rest = _plane_depth(camera, normal, offset)
+    z_rest = _with_neighbours(z_rest, z_obj, centre, camera, rng, neighbours)
 
-    # Support plane, analytic: n·x = offset. A table under the object touching
-    # its lowest point, or a wall 2–6 cm behind it facing the camera tilted ≤ 30°.
+    visible = alone & (z_obj < z_rest)
+    z_scene = np.minimum(z_obj, z_rest)
+    if stress.visible < 1.0 and visible.any():
+        z_occ = _occlude(stress.visible, z_obj, visible, centre, camera, rng, occluders)
+        visible &= z_obj < z_occ
+        z_scene = np.minimum(z_scene, z_occ)
+    visible_fraction = float(visible.sum()) / max(int(alone.sum()), 1)
+    ideal = z_scene.astype(np.float32)
+
+    depth, measured = sensed(z_scene, stress, camera, rng)
+    mask = detector_mask(visible, stress, camera, rng)
+    flying = mix_spill_ring(depth, mask, visible, measured, z_obj, stress, rng)
+    depth, measured = recorded(depth, measured, ideal, rays, visible, stress, rng)
+    depth_mm = np.round(depth.astype(np.float64) * 1000.0).astype(np.uint16)
+    on_object = int((mask & visible & measured).sum())
+    spilled = int((mask & ~visible & measured).sum())
+    return SceneView(
+        cloud=cloud_from_depth(depth_mm, camera.K, mask),
+        depth=depth,
+        K=camera.K,
+        mask=mask,
+        true_mask=visible,
+        T_cam_obj=T_cam_obj,
+        visible_fraction=visible_fraction,
+        spill_fraction=spilled / max(on_object, 1),
+        ideal_depth=ideal,
+        flying_mask=flying & measured,
+        stress=stress.name,
+        camera=camera,
+        support=(normal, offset),
+    )
+
+
+def _scene_pose(
+    mesh: trimesh.Trimesh,
+    stress: Stress,
+    rng: np.random.Generator,
+    camera: Camera,
+    T_cam_obj: np.ndarray | None,
+    box_centre: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The object's pose (``T_cam_obj`` or drawn as :func:`render_view` draws
+    it; resting on the table when ``stress.resting``) and, for a table, its
+    upward normal in the camera frame (seen from the elevation drawn)."""
+    up = None
     if stress.resting:
-        normal = up
-        offset = float((posed @ normal).min())
-    else:
-        toward = -centre / np.linalg.norm(centre)
-        axis = np.cross(toward, rng.normal(size=3))
-        tilt = tf.rotation_matrix(np.radians(rng.uniform(0, 30)), axis / np.linalg.norm(axis))[:3, :3]
-        normal = tilt @ toward
-        offset = float((posed @ normal).min() - rng.uniform(0.02, 0.06))
+        elevation = np.radians(rng.uniform(*TABLE_ELEVATION_DEG))
+        up = np.array([0.0, -np.cos(elevation), -np.sin(elevation)])
+    if T_cam_obj is None:
+        T_cam_obj = random_pose(rng, camera, stress.distance, centre=box_centre)
+        if up is not None:  # same box centre in the camera frame, turned to rest on the table
+            R = _resting_rotation(mesh, up, rng)
+            T_cam_obj[:3, 3] += (T_cam_obj[:3, :3] - R) @ box_centre
+            T_cam_obj[:3, :3] = R
+    return np.asarray(T_cam_obj, dtype=np.float64), up
+
+
+def _support_plane(
+    stress: Stress, posed: np.ndarray, centre: np.ndarray, up: np.ndarray | None, rng: np.random.Generator
+) -> tuple[np.ndarray, float]:
+    """The support plane ``n·x = offset`` (camera frame, metres): a table
+    under the object touching its lowest point (``up``), or a wall 2–6 cm
+    behind it facing the camera tilted by up to 30°."""
+    import trimesh.transformations as tf
+
+    if stress.resting and up is not None:
+        return up, float((posed @ up).min())
+    toward = -centre / np.linalg.norm(centre)
+    axis = np.cross(toward, rng.normal(size=3))
+    tilt = tf.rotation_matrix(np.radians(rng.uniform(0, 30)), axis / np.linalg.norm(axis))[:3, :3]
+    normal = tilt @ toward
+    return normal, float((posed @ normal).min() - rng.uniform(0.02, 0.06))
+
+
+def _plane_depth(camera: Camera, normal: np.ndarray, offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's ray (H, W, 3; z = 1) and the plane's depth along it
+    (H, W; inf where the ray misses it or meets it beyond ``MAX_RANGE``)."""
     v, u = np.mgrid[0 : camera.height, 0 : camera.width]
     rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        z_rest = offset / (rays @ normal)  # ray z = 1: the plane's depth along it
+        z_rest = offset / (rays @ normal)
     z_rest[~((z_rest > 0) & (z_rest < MAX_RANGE))] = np.inf
+    return rays, z_rest
 
-    # Neighbours beside the object, pushed out until none hides an object pixel.
+
+def _with_neighbours(
+    z_rest: np.ndarray,
+    z_obj: np.ndarray,
+    centre: np.ndarray,
+    camera: Camera,
+    rng: np.random.Generator,
+    neighbours: Sequence[trimesh.Trimesh],
+) -> np.ndarray:
+    """``z_rest`` with 1–3 neighbours (boxes, cylinders or ``neighbours``
+    meshes) beside the object, each pushed out until it hides no object pixel."""
+    import trimesh.transformations as tf
+
     u, v = _project(centre, camera)
-    rows, cols = np.nonzero(alone)
+    rows, cols = np.nonzero(np.isfinite(z_obj))
     count = int(rng.integers(1, 4)) if len(rows) else 0
     start = rng.uniform(0, 2 * np.pi)
     for k in range(count):
@@ -153,79 +225,7 @@ def render_scene(
                 z_rest = np.minimum(z_rest, rasterize_depth(moved, nb.faces, camera))
                 break
             lateral += 0.01 + 0.2 * lateral
-
-    visible = alone & (z_obj < z_rest)
-    z_scene = np.minimum(z_obj, z_rest)
-    if stress.visible < 1.0 and visible.any():
-        z_occ = _occlude(stress.visible, z_obj, visible, centre, camera, rng, occluders)
-        visible &= z_obj < z_occ
-        z_scene = np.minimum(z_scene, z_occ)
-    visible_fraction = float(visible.sum()) / max(int(alone.sum()), 1)
-    ideal = z_scene.astype(np.float32)
-
-    # Sensor: lateral jitter of depth samples, then axial noise.
-    depth = z_scene.copy()
-    if stress.lateral_px > 0:
-        jitter = np.clip(np.rint(rng.normal(0.0, stress.lateral_px, size=(2, *depth.shape))), -2, 2).astype(int)
-        r = np.clip(np.arange(camera.height)[:, None] + jitter[0], 0, camera.height - 1)
-        c = np.clip(np.arange(camera.width)[None, :] + jitter[1], 0, camera.width - 1)
-        depth = depth[r, c]
-    measured = np.isfinite(depth)
-    depth[measured] += rng.normal(size=int(measured.sum())) * noise_sigma(stress, depth[measured])
-
-    # Detector mask, then mixed pixels in its spill ring.
-    mask = visible.copy()
-    if stress.spill_px > 0:
-        mask = dilate(mask, stress.spill_px)
-    if stress.erode_px > 0:
-        mask = erode(mask, stress.erode_px)
-    if stress.cut > 0 and visible.any():
-        angle = rng.uniform(0, 2 * np.pi)
-        rows, cols = np.nonzero(visible)
-        along = lambda r, c: c * np.cos(angle) + r * np.sin(angle)  # noqa: E731
-        threshold = np.quantile(along(rows, cols), 1.0 - stress.cut)
-        rr, cc = np.mgrid[0 : camera.height, 0 : camera.width]
-        mask &= along(rr, cc) <= threshold
-    ring = mask & ~visible & measured
-    flying = np.zeros_like(mask)
-    if stress.flying > 0 and ring.any():
-        near_obj = _spread(np.where(visible, z_obj, np.inf), max(stress.spill_px, 1))
-        candidates = np.flatnonzero(ring & np.isfinite(near_obj))
-        picked = rng.choice(candidates, int(round(stress.flying * len(candidates))), replace=False)
-        flying.flat[picked] = True
-        alpha = rng.uniform(0.1, 0.9, size=len(picked))
-        fg = near_obj.flat[picked]
-        depth.flat[picked] = fg + alpha * (depth.flat[picked] - fg)
-
-    if stress.quantization > 0:
-        depth[measured] = np.round(depth[measured] / stress.quantization) * stress.quantization
-    if stress.dropout > 0:
-        measured &= rng.random(depth.shape) >= stress.dropout
-    if stress.grazing_deg < 90.0:
-        measured &= _viewing_angle(ideal, rays) <= stress.grazing_deg
-    if stress.holes > 0 and visible.sum() >= HOLE_PATCHES:
-        measured &= ~_holes(visible, stress.holes, rng)
-    measured &= (depth > 0) & (depth < 65.535)
-    depth = np.where(measured, depth, 0.0).astype(np.float32)
-    depth_mm = np.round(depth.astype(np.float64) * 1000.0).astype(np.uint16)
-    cloud = cloud_from_depth(depth_mm, camera.K, mask)
-    on_object = int((mask & visible & measured).sum())
-    spilled = int((mask & ~visible & measured).sum())
-    return SceneView(
-        cloud=cloud,
-        depth=depth,
-        K=camera.K,
-        mask=mask,
-        true_mask=visible,
-        T_cam_obj=T_cam_obj,
-        visible_fraction=visible_fraction,
-        spill_fraction=spilled / max(on_object, 1),
-        ideal_depth=ideal,
-        flying_mask=flying & measured,
-        stress=stress.name,
-        camera=camera,
-        support=(normal, offset),
-    )
+    return z_rest
 
 
 def _plain_view(mesh, stress: Stress, seed: int, T_cam_obj, camera: Camera) -> SceneView:
@@ -406,45 +406,6 @@ def _stable_poses(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
             _STABLE_POSES.clear()
         _STABLE_POSES[key] = (rests, np.asarray(chances) / np.sum(chances))
     return _STABLE_POSES[key]
-
-
-def _viewing_angle(z: np.ndarray, rays: np.ndarray) -> np.ndarray:
-    """(H, W) degrees between each pixel's viewing ray (``rays``, (H, W, 3)
-    at z = 1) and the surface's normal there, from the noise-free depth
-    ``z`` (metres, inf where empty) by central differences of the
-    back-projected points: near 90 at a depth edge, where the difference
-    spans two surfaces; 90 where a neighbour is empty."""
-    with np.errstate(invalid="ignore"):
-        points = rays * z.astype(np.float64)[..., None]
-        along_v, along_u = np.gradient(points, axis=(0, 1))
-        normal = np.cross(along_u, along_v)
-        cos = np.abs((normal * rays).sum(-1)) / (np.linalg.norm(normal, axis=-1) * np.linalg.norm(rays, axis=-1))
-    return np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=0.0), 0.0, 1.0)))
-
-
-def _holes(visible: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
-    """(H, W) bool: ``fraction`` of the ``visible`` pixels, those nearest to
-    ``HOLE_PATCHES`` of them drawn at random: round patches."""
-    rows, cols = np.nonzero(visible)
-    picked = rng.choice(len(rows), HOLE_PATCHES, replace=False)
-    distance = np.min(np.hypot(rows[:, None] - rows[picked], cols[:, None] - cols[picked]), axis=1)
-    hole = np.zeros_like(visible)
-    lost = distance <= np.quantile(distance, fraction)
-    hole[rows[lost], cols[lost]] = True
-    return hole
-
-
-def _spread(z: np.ndarray, steps: int) -> np.ndarray:
-    """``z`` (inf where empty) with empty pixels filled, ``steps`` times, by
-    the nearest-to-camera value of their 8 neighbours."""
-    out, (h, w) = z.copy(), z.shape
-    for _ in range(steps):
-        padded = np.pad(out, 1, constant_values=np.inf)
-        best = np.min(
-            [padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0
-        )
-        out = np.where(np.isfinite(out), out, best)
-    return out
 
 
 def _project(p: np.ndarray, camera: Camera) -> tuple[float, float]:  # pixel (u, v) of a camera-frame point
