@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from edgepose.eval import metrics
-from edgepose.eval.metrics import (
+from edgepose.eval import bop_metrics
+from edgepose.eval.bop_metrics import (
     BOP_MSPD_THRESHOLDS,
     BOP_MSSD_THRESHOLDS,
     BOP_VSD_DELTA,
@@ -202,7 +202,7 @@ def toolkit_style(R_est, t_est, R_gt, t_gt, points, transforms, K=None):
 
 
 def test_mssd_mspd_agree_with_a_loop_over_symmetries(monkeypatch):
-    monkeypatch.setattr(metrics, "_SYM_CHUNK_POINTS", 500)  # several chunks of transforms
+    monkeypatch.setattr(bop_metrics, "_SYM_CHUNK_POINTS", 500)  # several chunks of transforms
     rng = np.random.default_rng(1)
     points = rng.normal(0, 0.03, (100, 3))
     symmetry = Symmetry(turn(np.diag([1.0, -1.0, -1.0]))[None], np.array([[0.0, 0.0, 1.0, 0.01, 0.0, 0.0]]))

@@ -370,8 +370,9 @@ def test_track_follows_depth_frames_and_reports_a_bad_frame(drill, tmp_path):
             assert e.correct_add_or_s and float(row["confidence"]) >= 0.5
     # A frame file that cannot be read is reported the same way; the track goes on.
     (tmp_path / "frames" / "0004.png").write_bytes(b"\x89PNG not really")
+    K = " ".join(str(x) for x in view.camera.K.ravel())
     out = run(
-        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", " ".join(str(x) for x in view.camera.K.ravel()),
+        "track", "-c", str(DRILL_CODEBOOK), str(tmp_path / "frames"), "--K", K,
         "--masks", str(tmp_path / "masks"), "-o", str(tmp_path / "again.csv"),
     )  # fmt: skip
     assert out.returncode == 0 and "4 tracked" not in out.stdout and "2 without a pose" in out.stdout, out.stdout

@@ -22,21 +22,20 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from edgepose.eval.bop import MM, BopDataset, BopGt, BopObject, BopRow, BopTarget
-from edgepose.eval.metrics import (
+from edgepose.eval.bop_metrics import (
     BOP_MSPD_THRESHOLDS,
     BOP_MSSD_THRESHOLDS,
     BOP_VSD_DELTA,
     BOP_VSD_DELTAS,
     BOP_VSD_TAUS,
     BOP_VSD_THRESHOLDS,
-    CORRECT_FRACTION,
-    add_or_s,
     bop_mspd_thresholds,
     bop_symmetry_transforms,
     mspd,
     mssd,
     vsd,
 )
+from edgepose.eval.metrics import CORRECT_FRACTION, add_or_s
 
 
 @dataclass(frozen=True)
