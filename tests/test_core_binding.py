@@ -18,15 +18,20 @@ STUB = Path(edgepose.__file__).parent / "_core.pyi"
 
 
 def _stub() -> tuple[dict[str, list[str]], dict[str, dict[str, list[str] | None]]]:
-    """Functions (name → parameter names) and classes (name → member →
-    parameter names, None for properties) declared in ``_core.pyi``."""
+    """Functions (name → parameters) and classes (name → member →
+    parameters, None for properties) declared in ``_core.pyi``; a parameter
+    reads ``name``, ``*name`` when keyword-only, and ends in ``=`` when it
+    has a default."""
     functions: dict[str, list[str]] = {}
     classes: dict[str, dict[str, list[str] | None]] = {}
 
     def parameters(node: ast.FunctionDef) -> list[str]:
         args = node.args
-        names = [a.arg for a in args.posonlyargs + args.args + args.kwonlyargs]
-        return [n for n in names if n != "self"]
+        positional = args.posonlyargs + args.args
+        defaulted = {a.arg for a in positional[len(positional) - len(args.defaults) :]}
+        defaulted |= {a.arg for a, d in zip(args.kwonlyargs, args.kw_defaults) if d is not None}
+        names = [a.arg for a in positional] + [f"*{a.arg}" for a in args.kwonlyargs]
+        return [n + ("=" if n.lstrip("*") in defaulted else "") for n in names if n != "self"]
 
     for node in ast.parse(STUB.read_text()).body:
         if isinstance(node, ast.FunctionDef):
@@ -42,7 +47,12 @@ def _stub() -> tuple[dict[str, list[str]], dict[str, dict[str, list[str] | None]
 
 
 def _runtime_parameters(obj) -> list[str]:
-    return [p for p in inspect.signature(obj).parameters if p != "self"]
+    """``obj``'s parameters as :func:`_stub` writes them (kind and default too)."""
+    return [
+        ("*" if p.kind is p.KEYWORD_ONLY else "") + p.name + ("=" if p.default is not p.empty else "")
+        for p in inspect.signature(obj).parameters.values()
+        if p.name != "self"
+    ]
 
 
 def test_the_stub_declares_exactly_the_modules_functions_and_classes():
