@@ -107,9 +107,9 @@ def test_free_space_separates_the_true_pose_from_a_turned_over_one(drill):
     rotations = np.stack([R, flip @ R])
     translations = np.stack([t_model, t_model])
     d = codebook.model.diameter
-    fit, inliers, violation, _, _, scene = codebook.index.score(
-        query.keypoints, query.free_space, rotations, translations, 0.02 * d, 0.03 * d, 1
-    )
+    scores = codebook.index.score(query.keypoints, query.free_space, rotations, translations, 0.02 * d, 0.03 * d, 1)
+    violation, inliers, scene = scores.free_space_violation, scores.inlier_fraction, scores.scene_violation
+    assert len(scores) == 2
     assert violation[0] < 0.02 and inliers[0] > 0.9, (violation, inliers)
     assert query.free_space is query.free_space  # built once per query
     assert (scene == 0).all()  # no frame given

@@ -144,6 +144,21 @@ class IcpResults:
     @property
     def rmse(self) -> npt.NDArray[np.float64]: ...
 
+class ScoreResults:
+    def __len__(self) -> int: ...
+    @property
+    def fit(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def inlier_fraction(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def free_space_violation(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def off_silhouette(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def translation_constraint(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def scene_violation(self) -> npt.NDArray[np.float64]: ...
+
 class FlipMarginSearch:
     def result(
         self,
@@ -199,14 +214,7 @@ class ModelIndex:
         inlier_distance: float,
         free_space_tolerance: float,
         model_stride: int,
-    ) -> tuple[
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-        npt.NDArray[np.float64],
-    ]: ...
+    ) -> ScoreResults: ...
     def refine(
         self,
         cloud: npt.NDArray[np.float32],

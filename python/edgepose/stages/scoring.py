@@ -76,7 +76,7 @@ def score_poses(
     metres. ``fit_only``: the fit terms alone (fit, inlier fraction,
     translation constraint), the free-space terms left at 0."""
     d = codebook.model.diameter
-    fit, inliers, violation, off_silhouette, constraint, scene = codebook.index.score(
+    scored = codebook.index.score(
         observed,
         query.free_space if free_space is None else free_space,
         np.ascontiguousarray(rotations),
@@ -85,8 +85,16 @@ def score_poses(
         free_space_tolerance(query, d, settings),
         0 if fit_only else max(settings.free_space_model_stride, 1),
     )
-    cost = fit / inlier_distance + free_space_weight * (violation + scene)
-    return PoseScores(fit, inliers, violation, cost, off_silhouette, constraint, scene)
+    fit, violation, scene = scored.fit, scored.free_space_violation, scored.scene_violation
+    return PoseScores(
+        fit=fit,
+        inlier_fraction=scored.inlier_fraction,
+        free_space_violation=violation,
+        cost=fit / inlier_distance + free_space_weight * (violation + scene),
+        off_silhouette=scored.off_silhouette,
+        translation_constraint=scored.translation_constraint,
+        scene_violation=scene,
+    )
 
 
 def rim_tolerant_violation(

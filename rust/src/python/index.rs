@@ -17,7 +17,9 @@ use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::query::Pinhole;
 use crate::refine::IcpResult;
-use crate::scoring::{align_translations, score_poses, DepthGrid, SceneDepth, ScoreSettings};
+use crate::scoring::{
+    align_translations, score_poses, DepthGrid, PoseScore, SceneDepth, ScoreSettings,
+};
 use crate::threads::{self, Handed};
 use crate::{search, Point3};
 
@@ -202,10 +204,8 @@ impl PyModelIndex {
 
     /// Scores each candidate pose (model → camera: `rotations` (C, 3, 3),
     /// `translations` (C, 3)) against the `observed` points and the whole
-    /// observed cloud's `free_space` grid: `(fit (C,) metres, inlier_fraction (C,),
-    /// free_space_violation (C,), off_silhouette (C,),
-    /// translation_constraint (C,), scene_violation (C,))` (see the core's
-    /// `scoring` module).
+    /// observed cloud's `free_space` grid: [`PyScoreResults`] (see the
+    /// core's `scoring` module).
     #[allow(clippy::too_many_arguments)]
     fn score<'py>(
         &self,
@@ -217,7 +217,7 @@ impl PyModelIndex {
         inlier_distance: f64,
         free_space_tolerance: f64,
         model_stride: usize,
-    ) -> PyResult<Bound<'py, PyAny>> {
+    ) -> PyResult<PyScoreResults> {
         guarded(|| {
             let o = cloud_triples(&observed, "observed")?;
             let grid = &free_space.get().inner;
@@ -236,19 +236,7 @@ impl PyModelIndex {
                 model_stride,
             };
             let scores = py.detach(|| score_poses(&self.inner, o, grid, &poses, &settings));
-            (
-                PyArray1::from_vec(py, scores.iter().map(|s| s.fit).collect()),
-                PyArray1::from_vec(py, scores.iter().map(|s| s.inlier_fraction).collect()),
-                PyArray1::from_vec(py, scores.iter().map(|s| s.free_space_violation).collect()),
-                PyArray1::from_vec(py, scores.iter().map(|s| s.off_silhouette).collect()),
-                PyArray1::from_vec(
-                    py,
-                    scores.iter().map(|s| s.translation_constraint).collect(),
-                ),
-                PyArray1::from_vec(py, scores.iter().map(|s| s.scene_violation).collect()),
-            )
-                .into_pyobject(py)
-                .map(|t| t.into_any())
+            Ok(PyScoreResults { scores })
         })
     }
 
@@ -492,6 +480,69 @@ impl PyFlipMarginSearch {
                 PyArray1::from_vec(py, fits),
             ))
         })
+    }
+}
+
+/// The scoring terms of each of C poses, in order, as arrays (see the
+/// core's `scoring` module). Immutable; every getter returns a new array.
+#[pyclass(frozen, name = "ScoreResults", module = "edgepose._core")]
+pub struct PyScoreResults {
+    scores: Vec<PoseScore>,
+}
+
+impl PyScoreResults {
+    fn column<'py>(
+        &self,
+        py: Python<'py>,
+        term: impl Fn(&PoseScore) -> f64,
+    ) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.scores.iter().map(term).collect())
+    }
+}
+
+#[pymethods]
+impl PyScoreResults {
+    fn __len__(&self) -> usize {
+        self.scores.len()
+    }
+
+    /// (C,) float64 mean distance of the observed points to the posed
+    /// model, each at most the inlier distance, metres.
+    #[getter]
+    fn fit<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.column(py, |s| s.fit)
+    }
+
+    /// (C,) float64 share of the observed points within the inlier distance.
+    #[getter]
+    fn inlier_fraction<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.column(py, |s| s.inlier_fraction)
+    }
+
+    /// (C,) float64 share of the camera-facing model points on observed
+    /// rays that stand in front of the observed depth (0 with model stride 0).
+    #[getter]
+    fn free_space_violation<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.column(py, |s| s.free_space_violation)
+    }
+
+    /// (C,) float64 share of the camera-facing model points off the observed silhouette.
+    #[getter]
+    fn off_silhouette<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.column(py, |s| s.off_silhouette)
+    }
+
+    /// (C,) float64 smallest eigenvalue of the inliers' mean model n nᵀ.
+    #[getter]
+    fn translation_constraint<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.column(py, |s| s.translation_constraint)
+    }
+
+    /// (C,) float64 share of the camera-facing model points off the
+    /// silhouette in front of the scene's depth (0 without a scene).
+    #[getter]
+    fn scene_violation<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        self.column(py, |s| s.scene_violation)
     }
 }
 
