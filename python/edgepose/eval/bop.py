@@ -214,11 +214,13 @@ class BopImage:
     scene_dir: Path
 
     def depth(self) -> np.ndarray:
-        """(H, W) float64 depth, metres; 0 where nothing was measured."""
+        """(H, W) float64 depth, metres; 0 where nothing was measured (inf
+        where an absurd ``depth_scale`` overflows: no measurement either)."""
         from edgepose.io import read_depth_png
 
         image = read_depth_png(_image_file(self.scene_dir / "depth", f"{self.im_id:06d}"))
-        return image.astype(np.float64) * self.depth_scale
+        with np.errstate(over="ignore"):
+            return image.astype(np.float64) * self.depth_scale
 
     def mask(self, gt_id: int) -> np.ndarray:
         """(H, W) bool: where annotated instance ``gt_id`` is visible (``mask_visib``)."""
