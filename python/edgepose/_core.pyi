@@ -159,6 +159,23 @@ class ScoreResults:
     @property
     def scene_violation(self) -> npt.NDArray[np.float64]: ...
 
+class FlipSettings:
+    def __init__(
+        self,
+        *,
+        align_iterations: int,
+        align_distance: float,
+        inlier_distance: float,
+        free_space_tolerance: float,
+        model_stride: int,
+        rival_distance: float,
+        rival_points: int,
+        symmetric: bool,
+        settled: int,
+        settle_iterations: int,
+        settle_distance: float,
+    ) -> None: ...
+
 class FlipMarginSearch:
     def result(
         self,
@@ -242,17 +259,7 @@ class ModelIndex:
         own_net: float,
         turn_rotations: npt.NDArray[np.float64],
         turn_translations: npt.NDArray[np.float64],
-        align_iterations: int,
-        align_distance: float,
-        inlier_distance: float,
-        free_space_tolerance: float,
-        model_stride: int,
-        rival_distance: float,
-        rival_points: int,
-        symmetric: bool,
-        settled: int,
-        settle_iterations: int,
-        settle_distance: float,
+        settings: FlipSettings,
         beside: bool = False,
     ) -> FlipMarginSearch: ...
     def pair_poses(

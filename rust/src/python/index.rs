@@ -270,9 +270,8 @@ impl PyModelIndex {
     /// free-space violation on the `observed` points is `own_net`: see the
     /// core's `flips` module. `keypoints`, `observed` and `free_space` are
     /// the query's; `turn_rotations` (K, 3, 3) and `turn_translations`
-    /// (K, 3) the model's turns tried (model frame); the `settled` best
-    /// screened rivals are settled by `settle_iterations` of ICP pairing
-    /// points within `settle_distance` metres. Its `result()` is found in
+    /// (K, 3) the model's turns tried (model frame); `settings` how they
+    /// are aligned, scored, compared and settled. Its `result()` is found in
     /// the thread that asks for it, or, with `beside`, on one of the core's
     /// threads from now on while the caller goes on (`threads::hand_over`;
     /// the caller runs it when it asks before any thread has started it):
@@ -280,9 +279,7 @@ impl PyModelIndex {
     #[allow(clippy::too_many_arguments)]
     #[pyo3(signature = (
         keypoints, observed, free_space, rotation, translation, own_net, turn_rotations,
-        turn_translations, align_iterations, align_distance, inlier_distance,
-        free_space_tolerance, model_stride, rival_distance, rival_points, symmetric, settled,
-        settle_iterations, settle_distance, beside = false,
+        turn_translations, settings, beside = false,
     ))]
     fn flip_margin<'py>(
         &self,
@@ -294,17 +291,7 @@ impl PyModelIndex {
         own_net: f64,
         turn_rotations: PyReadonlyArray3<'py, f64>,
         turn_translations: PyReadonlyArray2<'py, f64>,
-        align_iterations: usize,
-        align_distance: f64,
-        inlier_distance: f64,
-        free_space_tolerance: f64,
-        model_stride: usize,
-        rival_distance: f64,
-        rival_points: usize,
-        symmetric: bool,
-        settled: usize,
-        settle_iterations: usize,
-        settle_distance: f64,
+        settings: &PyFlipSettings,
         beside: bool,
     ) -> PyResult<PyFlipMarginSearch> {
         guarded(|| {
@@ -335,21 +322,7 @@ impl PyModelIndex {
                 translation: vector(&translation, "translation")?,
             };
             let turns = poses_from(&turn_rotations, &turn_translations)?;
-            let settings = FlipSettings {
-                align_iterations,
-                align_distance,
-                score: ScoreSettings {
-                    inlier_distance,
-                    free_space_tolerance,
-                    model_stride,
-                },
-                rival_distance,
-                rival_points,
-                symmetric,
-                settled,
-                settle_iterations,
-                settle_distance,
-            };
+            let settings = settings.inner;
             let search = move || {
                 flip_margin(
                     &index, &keypoints, &observed, &grid, &pose, own_net, &turns, &settings,
@@ -480,6 +453,59 @@ impl PyFlipMarginSearch {
                 PyArray1::from_vec(py, fits),
             ))
         })
+    }
+}
+
+/// How [`PyModelIndex::flip_margin`] aligns, scores, compares and settles
+/// the turned poses ([`FlipSettings`]; distances in metres), built on the
+/// Python side (`edgepose.stages.refine`, where each is chosen).
+#[pyclass(frozen, name = "FlipSettings", module = "edgepose._core")]
+pub struct PyFlipSettings {
+    inner: FlipSettings,
+}
+
+#[pymethods]
+impl PyFlipSettings {
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (
+        *, align_iterations, align_distance, inlier_distance, free_space_tolerance, model_stride,
+        rival_distance, rival_points, symmetric, settled, settle_iterations, settle_distance,
+    ))]
+    fn new(
+        align_iterations: usize,
+        align_distance: f64,
+        inlier_distance: f64,
+        free_space_tolerance: f64,
+        model_stride: usize,
+        rival_distance: f64,
+        rival_points: usize,
+        symmetric: bool,
+        settled: usize,
+        settle_iterations: usize,
+        settle_distance: f64,
+    ) -> Self {
+        Self {
+            inner: FlipSettings {
+                align_iterations,
+                align_distance,
+                score: ScoreSettings {
+                    inlier_distance,
+                    free_space_tolerance,
+                    model_stride,
+                },
+                rival_distance,
+                rival_points,
+                symmetric,
+                settled,
+                settle_iterations,
+                settle_distance,
+            },
+        }
+    }
+
+    fn __repr__(&self) -> String {
+        format!("{:?}", self.inner)
     }
 }
 
