@@ -16,6 +16,7 @@ import faulthandler
 import os
 import re
 import struct
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -547,3 +548,24 @@ def test_a_scene_file_that_is_not_an_object_is_a_dataset_error(bop_files, tmp_pa
 
     with pytest.raises(BopDatasetError, match="not a number"):
         BopDataset(root).image_ids(0)
+
+
+def test_a_depth_scale_that_is_not_a_positive_number_is_a_dataset_error(bop_files, tmp_path):
+    # Found by benches/fuzz.py: a NaN depth_scale (JSON allows NaN) made every depth NaN, with numpy's warning.
+    import json
+
+    from edgepose.eval.bop import BopDataset, BopDatasetError
+
+    camera = json.loads(bop_files["test/000000/scene_camera.json"])
+    for value in ("NaN", "-1.0", "0", "Infinity"):
+        root = tmp_path / value
+        text = json.dumps({"1": {**camera["1"], "depth_scale": "X"}}).replace('"X"', value)
+        write_bop_folder(root, {**bop_files, "test/000000/scene_camera.json": text.encode()})
+        with pytest.raises(BopDatasetError, match="depth_scale must be a positive number"):
+            BopDataset(root).image(0, 1)
+    root = tmp_path / "huge"  # finite and positive: read; the depths that overflow are infinite, without a warning
+    text = json.dumps({"1": {**camera["1"], "depth_scale": 1.7e308}})
+    write_bop_folder(root, {**bop_files, "test/000000/scene_camera.json": text.encode()})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isinf(BopDataset(root).image(0, 1).depth()).any()

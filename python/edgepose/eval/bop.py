@@ -313,6 +313,8 @@ class BopDataset:
             cam = camera[str(im_id)]
             K = np.asarray(cam["cam_K"], dtype=np.float64).reshape(3, 3)
             depth_scale = float(cam.get("depth_scale", 1.0)) * MM
+            if not (np.isfinite(depth_scale) and depth_scale > 0):
+                raise ValueError(f"depth_scale must be a positive number, got {cam.get('depth_scale')!r}")
             gts = tuple(
                 BopGt(
                     gt_id,
