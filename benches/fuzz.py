@@ -16,7 +16,10 @@ Every input must give a valid result (a whole codebook, finite points, a
 finite rigid pose, a well-formed dataset) or an EdgePoseError; any other
 exception stops the run with hypothesis' minimal failing example, and a hang
 trips the faulthandler watchdog (stack dump, exit 1; armed per batch of
-``--batch`` cases, each a few ms, so a batch past 120 s holds a hang). Depth frames are cut to
+``--batch`` cases, each a few ms, so a batch past 120 s holds a hang). The
+watchdog reads wall time: a run at ``nice 19`` beside other busy work can
+starve past it without hanging (run at the same priority, or lower
+``--batch``). Depth frames are cut to
 a window around the object (the intrinsics shifted with it) so that a case
 costs milliseconds. Prints the cases per target, their outcomes, the time,
 and each worker's RSS after warm-up and at the end (hypothesis' own
