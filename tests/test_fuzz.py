@@ -569,3 +569,31 @@ def test_a_depth_scale_that_is_not_a_positive_number_is_a_dataset_error(bop_file
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert np.isinf(BopDataset(root).image(0, 1).depth()).any()
+
+
+def test_an_infinite_number_where_a_bop_file_wants_a_whole_one_is_a_dataset_error(bop_files, tmp_path):
+    # Found by benches/fuzz.py: JSON's Infinity as an inst_count or im_id raised OverflowError.
+    targets = b'[{"scene_id": 0, "im_id": 1, "obj_id": 8, "inst_count": 1}]'
+    for damaged in (
+        targets.replace(b'"inst_count": 1', b'"inst_count": Infinity'),
+        targets.replace(b"1,", b"Infinity,"),
+    ):
+        root = tmp_path / str(len(list(tmp_path.iterdir())))
+        write_bop_folder(root, {**bop_files, "test_targets_bop19.json": damaged})
+        assert check_bop(root) == "BopDatasetError", damaged
+    gt = bop_files["test/000000/scene_gt.json"]
+    root = tmp_path / "gt"
+    write_bop_folder(
+        root, {**bop_files, "test/000000/scene_gt.json": gt.replace(b'"obj_id": ', b'"obj_id": 1e400, "x": ')}
+    )
+    assert check_bop(root) == "BopDatasetError"
+    from edgepose.eval.bop import BopDatasetError
+    from edgepose.eval.bop_run import read_detections
+
+    detections = tmp_path / "detections.json"
+    detections.write_text(
+        '[{"scene_id": 0, "image_id": Infinity, "category_id": 8, "score": 1.0, "segmentation": '
+        '{"counts": [4], "size": [2, 2]}}]'
+    )
+    with pytest.raises(BopDatasetError, match="detection 0 malformed"):
+        read_detections(detections)

@@ -284,7 +284,7 @@ class BopDataset:
                     mesh,
                     eval_mesh if eval_mesh.is_file() else mesh,
                 )
-            except (KeyError, TypeError, ValueError) as e:
+            except (KeyError, TypeError, ValueError, OverflowError) as e:
                 raise BopDatasetError(f"{info_file}: object {key}: {type(e).__name__}: {e}") from None
         return objects
 
@@ -325,7 +325,7 @@ class BopDataset:
                 )
                 for gt_id, g in enumerate(gt.get(str(im_id), []))
             )
-        except (KeyError, IndexError, TypeError, ValueError) as e:
+        except (KeyError, IndexError, TypeError, ValueError, OverflowError) as e:
             raise BopDatasetError(f"{where}: image {im_id}: malformed annotation ({type(e).__name__}: {e})") from None
         return BopImage(scene_id, im_id, K, depth_scale, gts, where)
 
@@ -360,7 +360,7 @@ class BopDataset:
                     targets.append(BopTarget(scene_id, im_id, int(entry["obj_id"]), int(entry["inst_count"])))
                 else:
                     targets.extend(self._visible_targets(scene_id, im_id))
-            except (KeyError, TypeError, ValueError) as e:
+            except (KeyError, TypeError, ValueError, OverflowError) as e:
                 raise BopDatasetError(f"{path}: malformed target {entry!r} ({type(e).__name__}: {e})") from None
         return targets
 

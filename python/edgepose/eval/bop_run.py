@@ -151,7 +151,7 @@ def read_detections(path: str | os.PathLike) -> dict[tuple[int, int], list[Detec
                 _checked_rle(entry["segmentation"]),
                 float(entry.get("time", -1.0)),
             )
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
             raise BopDatasetError(f"{path}: detection {n} malformed ({type(e).__name__}: {e})") from None
         out.setdefault((det.scene_id, det.im_id), []).append(det)
     return out
