@@ -597,3 +597,18 @@ def test_an_infinite_number_where_a_bop_file_wants_a_whole_one_is_a_dataset_erro
     )
     with pytest.raises(BopDatasetError, match="detection 0 malformed"):
         read_detections(detections)
+
+
+def test_an_absurd_id_in_a_bop_file_is_a_dataset_error(bop_files, tmp_path):
+    # Found by benches/fuzz.py: a scene_id of 1e255 named a folder too long for the system (OSError).
+    from edgepose.eval.bop import BopDataset, BopDatasetError
+
+    targets = b'[{"scene_id": 0, "im_id": 1, "obj_id": 8, "inst_count": 1}]'
+    for damaged in (b'"scene_id": 1e255', b'"scene_id": -1', b'"im_id": 1e255, "x": 1'):
+        root = tmp_path / str(len(list(tmp_path.iterdir())))
+        key = damaged.split(b":")[0] + b": "
+        text = targets.replace(key + (b"0" if b"scene" in key else b"1"), damaged)
+        write_bop_folder(root, {**bop_files, "test_targets_bop19.json": text})
+        assert check_bop(root) == "BopDatasetError", text
+    with pytest.raises(BopDatasetError, match="no such scene folder"):
+        BopDataset(root).image(10**300, 1)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -353,11 +353,11 @@ class BopDataset:
         targets: list[BopTarget] = []
         for entry in entries:
             try:
-                scene_id, im_id = int(entry["scene_id"]), int(entry["im_id"])
+                scene_id, im_id = _whole_id(entry["scene_id"]), _whole_id(entry["im_id"])
                 if wanted is not None and scene_id not in wanted:
                     continue
                 if "obj_id" in entry:
-                    targets.append(BopTarget(scene_id, im_id, int(entry["obj_id"]), int(entry["inst_count"])))
+                    targets.append(BopTarget(scene_id, im_id, _whole_id(entry["obj_id"]), int(entry["inst_count"])))
                 else:
                     targets.extend(self._visible_targets(scene_id, im_id))
             except (KeyError, TypeError, ValueError, OverflowError) as e:
@@ -383,7 +383,7 @@ class BopDataset:
     def _scene(self, scene_id: int) -> tuple[dict, dict, dict]:
         if scene_id not in self._scenes:
             where = self.split_dir / f"{scene_id:06d}"
-            if not where.is_dir():
+            if not _is(where, Path.is_dir):
                 raise BopDatasetError(f"{where}: no such scene folder")
             camera, gt, info = where / "scene_camera.json", where / "scene_gt.json", where / "scene_gt_info.json"
             scene = (
@@ -430,12 +430,35 @@ def _split_dir(root: Path, split: str) -> Path:
 def _image_file(folder: Path, stem: str) -> Path:
     """``folder/stem.png``, or the one ``folder/stem.*`` (``.tif`` depth)."""
     path = folder / f"{stem}.png"
-    if path.is_file():
+    if _is(path, Path.is_file):
         return path
-    found = sorted(folder.glob(f"{stem}.*"))
+    found = sorted(folder.glob(f"{stem}.*")) if _is(folder, Path.is_dir) else []
     if not found:
         raise BopDatasetError(f"{path}: no such image")
     return found[0]
+
+
+def _is(path: Path, test: Callable[[Path], bool]) -> bool:
+    """``test(path)`` (``Path.is_file``, ``Path.is_dir``), False where the
+    system cannot even look (a name too long: an absurd id in a JSON file)."""
+    try:
+        return test(path)
+    except OSError:
+        return False
+
+
+def _whole_id(value: object) -> int:
+    """A scene, image or object id of a BOP file: a whole number from 0 to
+    ``MAX_ID - 1``; ValueError otherwise (BOP names folders and files by
+    them, zero-padded to six digits)."""
+    number = int(value)  # type: ignore[call-overload]
+    if not 0 <= number < MAX_ID:
+        raise ValueError(f"id {value!r} is not a whole number from 0 to {MAX_ID - 1}")
+    return number
+
+
+#: Ids at or above this are not a real dataset's (BOP pads ids to six digits).
+MAX_ID = 10**9
 
 
 def _read_json(path: Path) -> Any:
