@@ -33,10 +33,23 @@ def test_real_targets_are_estimated_right_from_annotated_and_grown_masks(real):
         assert all(r.grow_px == grow and r.pose is not None and not r.error for r in results)
         assert all(r.correct for r in results), [r.errors.add_or_s for r in results]
         assert all(r.points > 1000 for r in results)  # the can is ~10 cm across at ~1 m: thousands of pixels
+        assert not any(r.view_hides_feature for r in results)  # a body of revolution has no feature to hide
     # A grown mask takes in more pixels than the annotated one.
     exact = estimate_targets(dataset, targets[:1], books, 0, with_frame=False)[0]
     grown = estimate_targets(dataset, targets[:1], books, 8, with_frame=False)[0]
     assert grown.points > exact.points
+
+
+def test_the_real_mug_hides_its_handle_and_its_pose_says_so(real, tmp_path):
+    dataset, _, _ = real
+    mug = 14  # its handle is behind the body in every frame of scene 0
+    target = next(t for t in dataset.targets() if t.obj_id == mug)
+    books = bop_codebooks(dataset, [mug], tmp_path)
+    assert real_objects(books)[mug].features.sum() > 100  # the handle's points
+    result = estimate_targets(dataset, [target], books, 0, with_frame=False)[0]
+    assert result.view_hides_feature
+    assert result.flagged and result.view_fair_correct
+    assert result.pose.unseen_turn is not None
 
 
 def test_real_results_become_bop_rows_with_one_time_per_image(real):

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 from edgepose.eval import pose_errors, render_view
-from edgepose.unseen_turn import near_axis
+from edgepose.eval.view_ambiguity import feature_points, view_hides_feature
+from edgepose.unseen_turn import NearAxis, near_axis
 from edgepose.views import rotation_about
 
 
@@ -98,3 +99,25 @@ def test_a_tracked_frame_carries_the_open_turn(mug):
     assert second.mode == "tracked"
     assert second.unseen_turn is first.unseen_turn is not None
     assert second.confidence < second.strict_threshold
+
+
+@pytest.mark.parametrize(
+    ("handle_turn_deg", "hidden"), [(90.0, True), (0.0, False), (-45.0, False), (-90.0, False), (180.0, False)]
+)
+def test_the_ground_truth_says_whether_a_view_hides_the_handle(mug, handle_turn_deg, hidden):
+    mesh, codebook = mug
+    points = codebook.model.mesh_points
+    features = feature_points(points, near_axis(codebook.symmetry), codebook.model.diameter)
+    handle = points[:, 0] > 0.045  # the box handle stands 1.2–4.2 cm beyond the 4 cm body
+    assert features.any() and handle[features].all()
+    view = render_view(mesh, T_cam_obj=_view(handle_turn_deg), seed=2)
+    assert view_hides_feature(points, features, view.T_cam_obj, view.depth, view.camera.K, view.mask) is hidden
+
+
+def test_a_body_of_revolution_has_no_feature_for_a_view_to_hide():
+    body = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=64)
+    points = np.asarray(body.sample(2000, seed=0))
+    features = feature_points(points, NearAxis(np.array([0.0, 0, 1]), np.zeros(3)), 0.13)
+    assert not features.any()
+    view = render_view(body, T_cam_obj=_view(90.0), seed=2)
+    assert not view_hides_feature(points, features, view.T_cam_obj, view.depth, view.camera.K, view.mask)

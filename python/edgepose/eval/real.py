@@ -7,7 +7,12 @@ followed by a :class:`edgepose.Tracker` per object.
 Units are metres; poses are ``T_cam_obj`` in the OpenCV camera frame.
 Correctness is *depth-fair* ADD(-S) < 0.1 × diameter: ADD-S for an object
 whose model edgepose finds shape-symmetric (a can, a box), since depth
-alone cannot tell its turns apart, ADD otherwise.
+alone cannot tell its turns apart, ADD otherwise. *View-fair* correctness
+adds the views that cannot tell a pose: a target whose view hides what
+breaks its object's near symmetry (a mug's handle, read from the ground
+truth by :mod:`edgepose.eval.view_ambiguity`) counts when its pose is
+flagged (confidence below the strict threshold, the truth among its
+alternatives).
 """
 
 from __future__ import annotations
@@ -22,10 +27,12 @@ from edgepose.cloud import cloud_from_depth, dilate
 from edgepose.codebook import Codebook
 from edgepose.eval.bop import BopDataset, BopImage, BopRow, BopTarget
 from edgepose.eval.metrics import PoseErrors, pose_errors
+from edgepose.eval.view_ambiguity import feature_points, view_hides_feature
 from edgepose.frame import estimate_many
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.track import Tracker
+from edgepose.unseen_turn import near_axis
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,14 +45,28 @@ class RealObject:
     diameter: float
     symmetric: bool
     """Shape-symmetric as edgepose detects it: judged by ADD-S (depth-fair)."""
+    features: np.ndarray | None = None
+    """(N,) bool: the ``points`` that break a near symmetry (a mug's handle),
+    for an asymmetric object with a near-symmetry axis; None otherwise."""
+
+    def hidden_by(self, T_cam_obj: np.ndarray, depth: np.ndarray, K: np.ndarray, mask: np.ndarray) -> bool:
+        """Whether a view (depth frame, metres; the object's visible
+        ``mask``) at the true pose hides the features."""
+        if self.features is None:
+            return False
+        return view_hides_feature(self.points, self.features, T_cam_obj, depth, K, mask)
 
 
 def real_objects(codebooks: dict[int, Codebook]) -> dict[int, RealObject]:
     """The metric model of each object, from its codebook."""
-    return {
-        obj_id: RealObject(obj_id, cb.model.mesh_points, cb.model.diameter, cb.symmetry.symmetric)
-        for obj_id, cb in codebooks.items()
-    }
+    return {obj_id: _real_object(obj_id, cb) for obj_id, cb in codebooks.items()}
+
+
+def _real_object(obj_id: int, cb: Codebook) -> RealObject:
+    points, diameter, symmetric = cb.model.mesh_points, cb.model.diameter, cb.symmetry.symmetric
+    axis = None if symmetric else near_axis(cb.symmetry)
+    features = None if axis is None else feature_points(points, axis, diameter)
+    return RealObject(obj_id, points, diameter, symmetric, features)
 
 
 @dataclass
@@ -70,10 +91,24 @@ class TargetResult:
     error: str = ""
     alternative_correct: bool = False
     """Whether one of the pose's alternatives is right (depth-fair)."""
+    view_hides_feature: bool = False
+    """Whether the view hides what breaks the object's near symmetry (from
+    the ground truth): no depth method can tell the turn it leaves open."""
 
     @property
     def correct(self) -> bool:
         return bool(self.errors.correct_add_or_s)
+
+    @property
+    def flagged(self) -> bool:
+        """The pose says it cannot tell: confidence below its strict
+        threshold and the truth among its alternatives."""
+        return self.pose is not None and self.pose.confidence < self.pose.strict_threshold and self.alternative_correct
+
+    @property
+    def view_fair_correct(self) -> bool:
+        """Right, or the view hides the feature and the pose is flagged."""
+        return self.correct or (self.view_hides_feature and self.flagged)
 
 
 def target_instances(dataset: BopDataset, targets: Iterable[BopTarget]) -> list[tuple[BopImage, int, int]]:
@@ -147,6 +182,7 @@ def estimate_targets(
             pose,
             error,
             alternative_correct,
+            obj.hidden_by(gt.matrix, depth, image.K, image.mask(gt_id)),
         )
         results.append(result)
         if progress:
