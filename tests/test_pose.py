@@ -548,9 +548,9 @@ def test_the_free_space_tolerance_grows_with_the_sensor_noise_at_the_object_dept
     q_near = prepare_query(near, codebook, settings)
     q_far = prepare_query(far, codebook, settings)
     # Close by, the fraction of the diameter rules; far away, three noise stds.
-    assert free_space_tolerance(q_near, d, settings) == pytest.approx(settings.free_space_tolerance * d)
+    assert free_space_tolerance(q_near.median_depth, d, settings) == pytest.approx(settings.free_space_tolerance * d)
     sigma_far = a + b * (q_far.median_depth - c) ** 2
-    assert free_space_tolerance(q_far, d, settings) == pytest.approx(3.0 * sigma_far)
+    assert free_space_tolerance(q_far.median_depth, d, settings) == pytest.approx(3.0 * sigma_far)
     assert 3.0 * sigma_far > settings.free_space_tolerance * d
     quiet = settings.with_(free_space_noise_sigmas=0.0)
-    assert free_space_tolerance(q_far, d, quiet) == pytest.approx(settings.free_space_tolerance * d)
+    assert free_space_tolerance(q_far.median_depth, d, quiet) == pytest.approx(settings.free_space_tolerance * d)

@@ -181,27 +181,3 @@ def test_a_tracked_frame_offers_no_alternatives_from_an_earlier_frame():
     assert pose.mode == "tracked" and pose.alternatives == ()
     # The confidence still reads the doubt the estimate that started the track had.
     assert pose.evidence["alternatives"] == first.evidence["alternatives"]
-
-
-def test_the_tracked_scene_window_covers_the_posed_model_and_little_else(drill):
-    from edgepose.stages import SceneDepth, scene_around, scene_of_pose
-
-    mesh, codebook = drill
-    view = render_view(mesh, seed=4)
-    model = codebook.model
-    R = view.T_cam_obj[:3, :3]
-    t = view.T_cam_obj[:3, 3] + R @ model.centre  # mesh frame → model frame
-    scene = scene_of_pose(view.depth, view.camera.K, 1.0, codebook, R, t)
-    assert scene is not None
-    fx, fy, cx, cy = scene.camera
-    p = model.points.astype(np.float64) @ R.T + t
-    u, v = fx * p[:, 0] / p[:, 2] + cx, fy * p[:, 1] / p[:, 2] + cy
-    h, w = scene.depth.shape
-    r = SceneDepth.radius
-    # Every model point's pixel and the pixels the scene test reads around it lie in the window.
-    assert u.min() - r >= 0 and v.min() - r >= 0 and u.max() + r < w and v.max() + r < h
-    # The search's window must hold every pose it may keep: it is larger.
-    around = scene_around(view.depth, view.camera.K, 1.0, view.cloud, model.diameter)
-    assert scene.depth.size < around.depth.size
-    # A pose behind the camera has no window.
-    assert scene_of_pose(view.depth, view.camera.K, 1.0, codebook, R, -t) is None

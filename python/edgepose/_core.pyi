@@ -192,11 +192,39 @@ class DepthGrid:
         self,
         cloud: npt.NDArray[np.float32],
         spacing: float,
-        scene_depth: npt.NDArray[np.float32] | None = None,
+        scene_depth: npt.NDArray[np.uint16] | npt.NDArray[np.float32] | npt.NDArray[np.float64] | None = None,
         scene_camera: tuple[float, float, float, float] | None = None,
         scene_radius: int = 2,
         edge_slack: bool = False,
+        scene_window: tuple[int, int, int, int] | None = None,
+        scene_depth_scale: float = 1.0,
     ) -> None: ...
+
+class TrackFrameSettings:
+    def __init__(
+        self,
+        *,
+        icp_iterations: int,
+        icp_max_distance: float,
+        inlier_distance: float,
+        tight_inlier_distance: float,
+        model_stride: int,
+        diameter: float,
+        scene_radius: int,
+        scene_margin: float,
+    ) -> None: ...
+
+class TrackedFit:
+    @property
+    def icp(self) -> IcpResults: ...
+    @property
+    def loose(self) -> ScoreResults: ...
+    @property
+    def tight(self) -> ScoreResults: ...
+    @property
+    def sides(self) -> tuple[float, float, float]: ...
+    @property
+    def with_scene(self) -> bool: ...
 
 class ModelIndex:
     def __init__(self, model: StandardModel) -> None: ...
@@ -232,6 +260,19 @@ class ModelIndex:
         free_space_tolerance: float,
         model_stride: int,
     ) -> ScoreResults: ...
+    def track_frame(
+        self,
+        points: npt.NDArray[np.float32],
+        seen: npt.NDArray[np.float32],
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        free_space_tolerance: float,
+        settings: TrackFrameSettings,
+        depth: npt.NDArray[np.uint16] | npt.NDArray[np.float32] | npt.NDArray[np.float64] | None = None,
+        k: npt.NDArray[np.float64] | None = None,
+        depth_scale: float = 1.0,
+        box_corners: npt.NDArray[np.float64] | None = None,
+    ) -> TrackedFit: ...
     def refine(
         self,
         cloud: npt.NDArray[np.float32],

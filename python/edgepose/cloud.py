@@ -97,10 +97,7 @@ def clean_depth_cloud(
     float32 points (camera frame, metres) in one call to the Rust core,
     without the whole cloud passing through numpy (a tracked frame keeps a
     thousand of an object's tens of thousands of pixels)."""
-    box = _valid_box(depth, K, np.ones(depth.shape, bool) if mask is None else checked_mask(mask, depth.shape))
-    if box is None:
-        return clean_cloud(np.zeros((0, 3)), diameter, max_points)  # the same error as an empty cloud's
-    depth, valid, K = box
+    valid = np.ones(depth.shape, bool) if mask is None else np.ascontiguousarray(checked_mask(mask, depth.shape))
     return _core.clean_depth_cloud(depth, valid, K, float(depth_scale), diameter, _clean_settings(max_points))
 
 
@@ -274,31 +271,8 @@ def back_project(depth: np.ndarray, K: np.ndarray, valid: np.ndarray, depth_scal
     with a measured depth (``depth / depth_scale`` finite and positive) of a
     :func:`checked_depth` image, in row-major order (pixel centres, OpenCV).
     Runs in the Rust core without the GIL, on the valid pixels' bounding
-    box only (its principal point shifted by the box corner: the same points)."""
-    box = _valid_box(depth, K, valid)
-    if box is None:
-        return np.zeros((0, 3))
-    depth, valid, K = box
-    return _core.back_project(depth, valid, K, float(depth_scale))
-
-
-def _valid_box(depth: np.ndarray, K: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """``depth`` and ``valid`` cut to the bounding box of the valid pixels
-    (C-contiguous), with ``K``'s principal point shifted by the box corner:
-    the same points, fewer pixels to read. None when no pixel is valid."""
-    valid = np.asarray(valid, dtype=bool)
-    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
-    if not len(rows):
-        return None
-    top, bottom, left, right = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-    K = K.copy()
-    K[0, 2] -= left
-    K[1, 2] -= top
-    return (
-        np.ascontiguousarray(depth[top:bottom, left:right]),
-        np.ascontiguousarray(valid[top:bottom, left:right]),
-        K,
-    )
+    box only (its principal point shifted by the box corner)."""
+    return _core.back_project(depth, np.ascontiguousarray(valid, dtype=bool), K, float(depth_scale))
 
 
 def depth_discontinuities(z: np.ndarray, measured: np.ndarray, where: np.ndarray, max_jump: float) -> np.ndarray:

@@ -23,6 +23,7 @@ mask spilled onto) are dropped first, as ``estimate`` drops them
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import threading
 import time
@@ -31,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edgepose import _core
 from edgepose.cloud import (
     DEPTH_SCALE_MM,
     checked_depth,
@@ -41,18 +43,16 @@ from edgepose.cloud import (
     cloud_from_depth,
 )
 from edgepose.codebook import Codebook
-from edgepose.confidence import box_sides, evidence_of
+from edgepose.confidence import evidence_of
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.pose import Pose, check_types, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages import (
-    PoseScores,
-    Query,
+    SCENE_MARGIN,
+    SceneDepth,
+    free_space_tolerance,
     near_the_cloud,
     off_support_plane,
-    scene_around,
-    scene_of_pose,
-    score_poses,
     subsample,
 )
 
@@ -154,11 +154,17 @@ class Tracker:
         (see :func:`edgepose.cloud_from_depth`). A tracked frame reads only
         the pixels it uses."""
         frame = (*checked_depth(depth, K, depth_scale), depth_scale)
-        mask = None if mask is None else checked_mask(mask, frame[0].shape)
+        return self.update_frame(frame, None if mask is None else checked_mask(mask, frame[0].shape))
+
+    def update_frame(self, frame: tuple[np.ndarray, np.ndarray, float], mask: np.ndarray | None) -> Pose:
+        """:meth:`update_depth` on a frame already checked (``(depth, K,
+        depth_scale)`` from :func:`edgepose.cloud.checked_frame`, ``mask``
+        from :func:`edgepose.cloud.checked_mask`): what
+        :func:`edgepose.track_many` calls for each object of one frame."""
         d = self.codebook.model.diameter
         return self._update(
             frame,
-            lambda: cloud_from_depth(*frame[:2], mask, depth_scale),
+            lambda: cloud_from_depth(*frame[:2], mask, frame[2]),
             lambda count: clean_depth_cloud(*frame, mask, d, count),
         )
 
@@ -217,36 +223,41 @@ class Tracker:
         :meth:`_update`), or None when it fails the check (``frame``: the
         checked depth image, K and depth scale, or None). Raises
         InvalidCloudError for a cloud that cannot be the object."""
-        last, codebook, track = self._last, self.codebook, self.track
+        last, codebook, track, settings = self._last, self.codebook, self.track, self.settings
         assert last is not None
         model = codebook.model
         d = model.diameter
-        seen = off_support_plane(cleaned(track.grid_points), frame, d, self.settings)
-        points = subsample(seen, track.points, self.settings.subsample_seed)
+        seen = off_support_plane(cleaned(track.grid_points), frame, d, settings)
+        points = subsample(seen, track.points, settings.subsample_seed)
         R, t = self._predicted()
-        icp = codebook.index.refine(points, R[None], t[None], track.icp_iterations, track.icp_max_distance * d)
+        tolerance = free_space_tolerance(float(np.median(seen[:, 2])), d, settings)
+        depth, K, depth_scale = frame if frame is not None else (None, None, 1.0)
+        fit = codebook.index.track_frame(
+            points,
+            seen,
+            R[None],
+            t[None],
+            tolerance,
+            _frame_settings(track, settings, d),
+            depth,
+            K,
+            depth_scale,
+            None if frame is None else model.box_corners,
+        )
+        icp, scores, tight = fit.icp, fit.loose, fit.tight
         R, t = icp.rotations[0], icp.translations[0]
-        scene = None if frame is None else scene_of_pose(*frame, codebook, R, t) or scene_around(*frame, seen, d)
-        sides = box_sides(seen)
-        query = Query(
-            seen, _spacing(sides, len(seen)), seen.mean(axis=0, dtype=np.float64), _EYE, seen[:0], seen[:0], scene
-        )
-        scores = score_poses(query, codebook, points, R[None], t[None], track.inlier_distance * d, 0.0, self.settings)
-        tight_distance = self.settings.hypothesis_inlier_distance * d
-        tight = score_poses(
-            query, codebook, points, R[None], t[None], tight_distance, 0.0, self.settings, fit_only=True
-        )
         if not (
             np.isfinite(icp.rmse[0])
-            and icp.inliers[0] >= self.settings.min_icp_inliers
+            and icp.inliers[0] >= settings.min_icp_inliers
             and scores.inlier_fraction[0] >= track.min_inlier_fraction
             and scores.free_space_violation[0] <= track.max_free_space_violation
-            and (scene is None or scores.scene_violation[0] <= track.max_scene_violation)
-            and near_the_cloud(query, codebook, t[None], self.settings)[0]
+            and (not fit.with_scene or scores.scene_violation[0] <= track.max_scene_violation)
+            and near_the_cloud(seen.mean(axis=0, dtype=np.float64), codebook, t[None], settings)[0]
         ):
             return None
-        evidence = _tracked_evidence(last, scores, tight, math.hypot(*sides) / d, tight_distance)
-        judge = self.encoder.judge(with_scene=scene is not None)
+        tight_distance = settings.hypothesis_inlier_distance * d
+        evidence = _tracked_evidence(last, scores, tight, math.hypot(*fit.sides) / d, tight_distance)
+        judge = self.encoder.judge(with_scene=fit.with_scene)
         confidence = judge.probability(evidence) if judge else float("nan")
         if last.unseen_turn is not None:  # tracking cannot tell the turn the view left open either
             evidence["unseen_turn_share"] = last.unseen_turn.share
@@ -272,7 +283,7 @@ class Tracker:
 
 
 def _tracked_evidence(
-    last: Pose, scores: PoseScores, tight: PoseScores, observed_extent: float, tight_distance: float
+    last: Pose, scores: _core.ScoreResults, tight: _core.ScoreResults, observed_extent: float, tight_distance: float
 ) -> dict[str, float]:
     """The confidence model's evidence for a tracked pose: its ``scores`` at
     the tracker's inlier distance and ``tight`` at ``tight_distance``
@@ -324,14 +335,17 @@ def _scaled_turn(R: np.ndarray, share: float) -> np.ndarray:
     )
 
 
-def _spacing(sides: list[float], count: int) -> float:
-    """Typical distance between neighbouring points of a surface patch of
-    ``count`` points, metres: the square root of its area (the two larger
-    of its bounding-box ``sides``) per point. Sizes the free-space check's grid."""
-    ordered = sorted(sides)
-    return math.sqrt(ordered[1] * ordered[2] / max(count, 1))
-
-
-#: The tracker's query is not turned to the optical axis.
-_EYE = np.eye(3)
-_EYE.flags.writeable = False
+@functools.lru_cache(maxsize=64)
+def _frame_settings(track: TrackSettings, settings: EstimateSettings, diameter: float) -> _core.TrackFrameSettings:
+    """What a tracked frame's core call needs of the settings, in metres for
+    an object of ``diameter``."""
+    return _core.TrackFrameSettings(
+        icp_iterations=track.icp_iterations,
+        icp_max_distance=track.icp_max_distance * diameter,
+        inlier_distance=track.inlier_distance * diameter,
+        tight_inlier_distance=settings.hypothesis_inlier_distance * diameter,
+        model_stride=settings.free_space_model_stride,
+        diameter=diameter,
+        scene_radius=SceneDepth.radius,
+        scene_margin=SCENE_MARGIN,
+    )

@@ -21,6 +21,7 @@ pub mod search;
 pub mod segment;
 pub mod support;
 pub mod threads;
+pub mod track;
 pub mod views;
 pub mod visibility;
 
@@ -36,8 +37,8 @@ pub use index::{ModelIndex, Pose};
 pub use maps::{compute_maps, normalize_to_map, view_map, Maps, ViewMap};
 pub use model::StandardModel;
 pub use query::{
-    back_project, clean_cloud, prepare_query, CleanSettings, CloudProblem, Pinhole, Query,
-    QuerySettings,
+    back_project, clean_cloud, clean_depth_cloud, prepare_query, CleanSettings, CloudProblem,
+    Pinhole, Query, QuerySettings,
 };
 pub use refine::IcpResult;
 pub use sampling::farthest_point_sample;

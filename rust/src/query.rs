@@ -38,8 +38,7 @@ pub struct Pinhole {
 /// Camera-frame points (metres) of the pixels of a `width`-wide row-major
 /// depth image whose `mask` flag is set and whose depth is measured (`depth
 /// / depth_scale` finite and positive, metres) and whose point is finite,
-/// in row-major order. Rows without a flag are skipped whole (one object's
-/// mask is small).
+/// in row-major order.
 pub fn back_project<T: Copy + Into<f64>>(
     depth: &[T],
     mask: &[bool],
@@ -47,36 +46,135 @@ pub fn back_project<T: Copy + Into<f64>>(
     camera: &Pinhole,
     depth_scale: f64,
 ) -> Vec<[f64; 3]> {
-    if width == 0 {
+    let Some(area) = flags_box(mask, width) else {
         return Vec::new();
-    }
-    let mut points = Vec::with_capacity(mask.iter().filter(|m| **m).count());
-    for (v, (depth_row, mask_row)) in depth
-        .chunks_exact(width)
-        .zip(mask.chunks_exact(width))
-        .enumerate()
-    {
-        if !mask_row.contains(&true) {
-            continue;
-        }
-        for (u, (d, _)) in depth_row
+    };
+    let flags: usize = (area.top..area.bottom)
+        .map(|v| {
+            let row = &mask[v * width + area.left..v * width + area.right];
+            row.iter().map(|m| *m as usize).sum::<usize>()
+        })
+        .sum();
+    let mut points = Vec::with_capacity(flags);
+    let lens = BoxLens::new(camera, width, &area, depth_scale);
+    each_measured_pixel(depth, mask, &area, &lens, |_, p| points.push(p));
+    points
+}
+
+/// `visit(pixel, point)` for each pixel of `area` (row-major index into
+/// `depth`) that [`back_project`] keeps, in order.
+fn each_measured_pixel<T: Copy + Into<f64>>(
+    depth: &[T],
+    mask: &[bool],
+    area: &MaskBox,
+    lens: &BoxLens,
+    mut visit: impl FnMut(usize, [f64; 3]),
+) {
+    for v in area.top..area.bottom {
+        let start = v * lens.width + area.left;
+        let span = start..v * lens.width + area.right;
+        for (u, (d, _)) in depth[span.clone()]
             .iter()
-            .zip(mask_row)
+            .zip(&mask[span])
             .enumerate()
             .filter(|(_, (_, m))| **m)
         {
-            let z = (*d).into() / depth_scale;
-            if z.is_finite() && z > 0.0 {
-                let x = (u as f64 - camera.cx) * z / camera.fx;
-                let y = (v as f64 - camera.cy) * z / camera.fy;
-                // Absurd intrinsics or scale (fx of 1e-200) overflow: no point, as without depth.
-                if x.is_finite() && y.is_finite() {
-                    points.push([x, y, z]);
-                }
+            if let Some(p) = lens.point(u, v - area.top, *d) {
+                visit(start + u, p);
             }
         }
     }
-    points
+}
+
+/// Back-projection of the pixels of a box of a `width`-wide image whose
+/// top-left pixel is (`left`, `top`): the principal point shifted by that
+/// corner, as the box cut out would have it.
+struct BoxLens {
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    width: usize,
+    top: usize,
+    left: usize,
+    depth_scale: f64,
+}
+
+impl BoxLens {
+    fn new(camera: &Pinhole, width: usize, area: &MaskBox, depth_scale: f64) -> Self {
+        Self {
+            fx: camera.fx,
+            fy: camera.fy,
+            cx: camera.cx - area.left as f64,
+            cy: camera.cy - area.top as f64,
+            width,
+            top: area.top,
+            left: area.left,
+            depth_scale,
+        }
+    }
+
+    /// The point of the box's pixel (`u`, `row`) measured at `depth`; None
+    /// without a measurement (`depth / depth_scale` not finite and
+    /// positive) or when the point is not finite.
+    fn point<T: Into<f64>>(&self, u: usize, row: usize, depth: T) -> Option<[f64; 3]> {
+        let z = depth.into() / self.depth_scale;
+        if !(z.is_finite() && z > 0.0) {
+            return None;
+        }
+        let x = (u as f64 - self.cx) * z / self.fx;
+        let y = (row as f64 - self.cy) * z / self.fy;
+        // Absurd intrinsics or scale (fx of 1e-200) overflow: no point, as without depth.
+        (x.is_finite() && y.is_finite()).then_some([x, y, z])
+    }
+
+    /// [`point`](Self::point) of `pixel`, a row-major index into the image.
+    fn point_of_pixel<T: Into<f64>>(&self, pixel: usize, depth: T) -> Option<[f64; 3]> {
+        let (u, row) = (
+            pixel % self.width - self.left,
+            pixel / self.width - self.top,
+        );
+        self.point(u, row, depth)
+    }
+}
+
+/// The bounding box of a mask's set flags: rows `top..bottom`, columns `left..right`.
+struct MaskBox {
+    top: usize,
+    bottom: usize,
+    left: usize,
+    right: usize,
+}
+
+/// The [`MaskBox`] of a `width`-wide row-major `mask`, or None when no flag is set.
+fn flags_box(mask: &[bool], width: usize) -> Option<MaskBox> {
+    if width == 0 {
+        return None;
+    }
+    let mut found: Option<MaskBox> = None;
+    for (v, flags) in mask.chunks_exact(width).enumerate() {
+        // Without an early exit the test runs as vector operations: most rows have no flag.
+        if flags.iter().fold(0u8, |any, m| any | *m as u8) == 0 {
+            continue;
+        }
+        let first = flags.iter().position(|m| *m).unwrap_or(0);
+        let last = flags.iter().rposition(|m| *m).unwrap_or(first);
+        found = Some(match found {
+            None => MaskBox {
+                top: v,
+                bottom: v + 1,
+                left: first,
+                right: last + 1,
+            },
+            Some(b) => MaskBox {
+                bottom: v + 1,
+                left: b.left.min(first),
+                right: b.right.max(last + 1),
+                ..b
+            },
+        });
+    }
+    found
 }
 
 /// Limits of [`clean_cloud`] (the Python layer's `edgepose.cloud` constants).
@@ -161,29 +259,80 @@ pub fn clean_cloud(
     settings: &CleanSettings,
 ) -> Result<Vec<Point3>, CloudProblem> {
     let limit = settings.max_coordinate;
-    let valid_row = |p: &[f64; 3]| p.iter().all(|c| c.abs() <= limit); // false for NaN
-    let valid = (0..total).filter(|&i| valid_row(&row(i))).count();
-    if valid < settings.min_points {
-        return Err(CloudProblem::TooFewPoints {
-            valid,
-            total,
-            needed: settings.min_points,
-            max_coordinate: limit,
-        });
-    }
+    let valid = (0..total).filter(|&i| within(&row(i), limit)).count();
+    check_count(valid, total, settings)?;
     let ranks = draw(valid, settings.max_points, settings.seed);
     let mut wanted = ranks.iter().peekable();
     let mut points: Vec<[f64; 3]> = Vec::with_capacity(ranks.len());
     let mut rank = 0;
     for i in 0..total {
         let p = row(i);
-        if valid_row(&p) {
+        if within(&p, limit) {
             if wanted.next_if_eq(&&rank).is_some() {
                 points.push(p);
             }
             rank += 1;
         }
     }
+    kept_near_median(points, diameter, settings)
+}
+
+/// [`clean_cloud`] of the cloud [`back_project`] makes of `mask` in
+/// `depth`: the same points, each pixel's computed once and only the drawn
+/// ones kept (a tracked frame keeps a thousand of tens of thousands).
+pub fn clean_depth_cloud<T: Copy + Into<f64>>(
+    depth: &[T],
+    mask: &[bool],
+    width: usize,
+    camera: &Pinhole,
+    depth_scale: f64,
+    diameter: f64,
+    settings: &CleanSettings,
+) -> Result<Vec<Point3>, CloudProblem> {
+    let Some(area) = flags_box(mask, width) else {
+        return clean_cloud(0, |_| [0.0; 3], diameter, settings);
+    };
+    let lens = BoxLens::new(camera, width, &area, depth_scale);
+    let limit = settings.max_coordinate;
+    let (mut total, mut valid) = (0, Vec::new());
+    each_measured_pixel(depth, mask, &area, &lens, |pixel, p| {
+        total += 1;
+        if within(&p, limit) {
+            valid.push(pixel);
+        }
+    });
+    check_count(valid.len(), total, settings)?;
+    let points = draw(valid.len(), settings.max_points, settings.seed)
+        .into_iter()
+        .filter_map(|rank| lens.point_of_pixel(valid[rank], depth[valid[rank]]))
+        .collect();
+    kept_near_median(points, diameter, settings)
+}
+
+/// Whether every coordinate of `p` is within `limit` (false for NaN).
+fn within(p: &[f64; 3], limit: f64) -> bool {
+    p.iter().all(|c| c.abs() <= limit)
+}
+
+fn check_count(valid: usize, total: usize, settings: &CleanSettings) -> Result<(), CloudProblem> {
+    if valid < settings.min_points {
+        return Err(CloudProblem::TooFewPoints {
+            valid,
+            total,
+            needed: settings.min_points,
+            max_coordinate: settings.max_coordinate,
+        });
+    }
+    Ok(())
+}
+
+/// The drawn `points` without those farther than a diameter from their
+/// median (when enough remain), checked for the object's extent.
+fn kept_near_median(
+    mut points: Vec<[f64; 3]>,
+    diameter: f64,
+    settings: &CleanSettings,
+) -> Result<Vec<Point3>, CloudProblem> {
     let median = [0, 1, 2].map(|k| median(points.iter().map(|p| p[k]).collect()));
     let near = |p: &[f64; 3]| distance(p, &median) <= diameter;
     if points.iter().filter(|p| near(p)).count() >= settings.min_points {
@@ -350,6 +499,60 @@ mod tests {
 
     fn cleaned(cloud: &[[f64; 3]], settings: &CleanSettings) -> Result<Vec<Point3>, CloudProblem> {
         clean_cloud(cloud.len(), |i| cloud[i], 0.15, settings)
+    }
+
+    #[test]
+    fn a_depth_frame_cleans_to_the_points_of_its_back_projected_cloud() {
+        // 120 × 90 px: a slanted surface, holes, a far leak and an absurd pixel, a ring-shaped mask.
+        let (width, height) = (120usize, 90usize);
+        let camera = Pinhole {
+            fx: 100.0,
+            fy: 101.0,
+            cx: 60.3,
+            cy: 44.8,
+        };
+        let depth: Vec<f64> = (0..width * height)
+            .map(|i| match i % 97 {
+                0 => 0.0,
+                1 => f64::NAN,
+                2 => 9000.0,
+                3 => 2e9,
+                _ => 600.0 + (i % width) as f64 * 0.5,
+            })
+            .collect();
+        let mask: Vec<bool> = (0..width * height)
+            .map(|i| {
+                let (u, v) = ((i % width) as f64 - 55.0, (i / width) as f64 - 40.0);
+                (15.0..35.0).contains(&(u * u + v * v).sqrt())
+            })
+            .collect();
+        let limits = CleanSettings {
+            max_points: 500,
+            max_coordinate: 1e5,
+            ..LIMITS
+        };
+        for settings in [
+            limits,
+            CleanSettings {
+                max_points: 100_000,
+                ..limits
+            },
+        ] {
+            let cloud = back_project(&depth, &mask, width, &camera, 1000.0);
+            let expected = clean_cloud(cloud.len(), |i| cloud[i], 0.3, &settings);
+            let got = clean_depth_cloud(&depth, &mask, width, &camera, 1000.0, 0.3, &settings);
+            assert_eq!(got, expected);
+            assert!(got.unwrap().len() > 300);
+        }
+        let few = CleanSettings {
+            min_points: 100_000,
+            ..limits
+        };
+        let cloud = back_project(&depth, &mask, width, &camera, 1000.0);
+        assert_eq!(
+            clean_depth_cloud(&depth, &mask, width, &camera, 1000.0, 0.3, &few),
+            clean_cloud(cloud.len(), |i| cloud[i], 0.3, &few)
+        );
     }
 
     #[test]

@@ -37,9 +37,9 @@ use crate::Point3;
 /// point on the object's own jittered edge is compared with the edge, not
 /// with the background just beside it.
 pub struct SceneDepth {
-    camera: Pinhole,
-    width: usize,
-    height: usize,
+    pub(crate) camera: Pinhole,
+    pub(crate) width: usize,
+    pub(crate) height: usize,
     radius: usize,
     depth: Vec<f32>,
 }
@@ -67,6 +67,50 @@ impl SceneDepth {
             radius,
             depth,
         }
+    }
+
+    /// From the `window` (rows `top..bottom`, columns `left..right`) of a
+    /// row-major `width`-wide depth frame in `depth_scale` units per metre
+    /// (0 or not finite: no measurement), `camera` the frame's intrinsics;
+    /// `radius` pixels of neighbourhood. Each pixel is converted in float32
+    /// (`depth as f32 / depth_scale as f32`), as numpy's float32 division
+    /// would. None when the window is not within the frame.
+    pub fn from_frame<T: Copy + Into<f64>>(
+        frame: &[T],
+        width: usize,
+        [top, bottom, left, right]: [usize; 4],
+        depth_scale: f64,
+        camera: Pinhole,
+        radius: usize,
+    ) -> Option<Self> {
+        let height = frame.len().checked_div(width).unwrap_or(0);
+        if top > bottom || left > right || bottom > height || right > width {
+            return None;
+        }
+        let scale = depth_scale as f32;
+        let mut depth = Vec::with_capacity((bottom - top) * (right - left));
+        for v in top..bottom {
+            depth.extend(frame[v * width + left..v * width + right].iter().map(|&d| {
+                let z = d.into() as f32 / scale;
+                if z.is_finite() && z > 0.0 {
+                    z
+                } else {
+                    f32::INFINITY
+                }
+            }));
+        }
+        let camera = Pinhole {
+            cx: camera.cx - left as f64,
+            cy: camera.cy - top as f64,
+            ..camera
+        };
+        Some(Self {
+            camera,
+            width: right - left,
+            height: bottom - top,
+            radius,
+            depth,
+        })
     }
 
     /// The pixel (column, row) of `p` (camera frame), if on the image.
@@ -725,6 +769,40 @@ mod tests {
                 && pinned.translation_constraint <= 1.0 / 3.0 + 1e-9,
             "{pinned:?}"
         );
+    }
+
+    #[test]
+    fn a_frame_window_reads_as_the_same_scene_as_the_window_cut_out() {
+        // A 20 × 10 frame in millimetres; the window rows 2..8, columns 5..15.
+        let camera = Pinhole {
+            fx: 50.0,
+            fy: 50.0,
+            cx: 9.7,
+            cy: 4.3,
+        };
+        let frame: Vec<u16> = (0..200u16)
+            .map(|i| if i % 7 == 0 { 0 } else { 600 + i })
+            .collect();
+        let window = SceneDepth::from_frame(&frame, 20, [2, 8, 5, 15], 1000.0, camera, 1).unwrap();
+        let cut: Vec<f32> = (2..8)
+            .flat_map(|v| frame[v * 20 + 5..v * 20 + 15].iter())
+            .map(|&d| d as f32 / 1000.0)
+            .collect();
+        let shifted = Pinhole {
+            cx: camera.cx - 5.0,
+            cy: camera.cy - 2.0,
+            ..camera
+        };
+        let alone = SceneDepth::new(&cut, 10, shifted, 1);
+        assert_eq!(window.depth, alone.depth);
+        assert_eq!(window.camera, alone.camera);
+        for (x, y, z) in [(0.0, 0.0, 0.5), (0.01, -0.01, 0.7), (0.5, 0.0, 0.5)] {
+            let p = Vector3::new(x, y, z);
+            assert_eq!(window.pixel(&p), alone.pixel(&p));
+            assert_eq!(window.in_front(&p, 0.01), alone.in_front(&p, 0.01));
+        }
+        assert!(SceneDepth::from_frame(&frame, 20, [2, 11, 5, 15], 1000.0, camera, 1).is_none());
+        assert!(SceneDepth::from_frame(&frame, 20, [2, 8, 15, 5], 1000.0, camera, 1).is_none());
     }
 
     #[test]

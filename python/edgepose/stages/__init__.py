@@ -36,7 +36,6 @@ from edgepose.stages.query import (
     prepare_query,
     query_of_cleaned,
     scene_around,
-    scene_of_pose,
     subsample,
 )
 from edgepose.stages.refine import (
@@ -115,7 +114,6 @@ __all__ = [
     "retrieve",
     "rim_tolerant_violation",
     "scene_around",
-    "scene_of_pose",
     "score_poses",
     "subsample",
     "tie_broken",

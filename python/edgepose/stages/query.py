@@ -47,7 +47,16 @@ class Query:
         around the object when known; built once per query."""
         if self.scene is None:
             return _core.DepthGrid(self.points, self.spacing)
-        return _core.DepthGrid(self.points, self.spacing, self.scene.depth, self.scene.camera, self.scene.radius)
+        scene = self.scene
+        return _core.DepthGrid(
+            self.points,
+            self.spacing,
+            scene.depth,
+            scene.camera,
+            scene.radius,
+            scene_window=scene.window,
+            scene_depth_scale=scene.depth_scale,
+        )
 
     @cached_property
     def rim_tolerant_free_space(self) -> _core.DepthGrid:
@@ -76,9 +85,14 @@ class SceneDepth:
     with (see ``rust/src/scoring.rs``)."""
 
     depth: np.ndarray
-    """(h, w) float32 C-contiguous depth of the window, metres; 0: no measurement."""
+    """The whole checked frame (:func:`edgepose.cloud.checked_depth`), not
+    copied: ``depth / depth_scale`` metres; 0 or not finite: no measurement."""
+    depth_scale: float
+    window: tuple[int, int, int, int]
+    """Rows ``top..bottom`` and columns ``left..right`` of ``depth`` around
+    the object: the pixels the test reads (converted to metres in the core)."""
     camera: tuple[float, float, float, float]
-    """(fx, fy, cx, cy) of the window's pixels."""
+    """(fx, fy, cx, cy) of the frame's pixels."""
     radius: int = 2
     """Each pixel is read as the nearest depth within this many pixels
     (an object's edge jitters by a pixel or two)."""
@@ -130,22 +144,6 @@ def scene_around(
     return _scene_window(depth, K, depth_scale, points, grow * float(K[0, 0]), grow * float(K[1, 1]))
 
 
-def scene_of_pose(
-    depth: np.ndarray, K: np.ndarray, depth_scale: float, codebook: Codebook, R: np.ndarray, t: np.ndarray
-) -> SceneDepth | None:
-    """The window of a checked ``depth`` image that one pose (model frame →
-    camera) of ``codebook``'s object projects into: its bounding box's
-    eight corners projected, grown by the scene test's pixel radius; None
-    when a corner is not in front of the camera. The tracker's window: its
-    pose is known before the scene is read, so the window need not cover
-    every pose a search might keep (:func:`scene_around`)."""
-    corners = codebook.model.box_corners @ R.T + t
-    if corners[:, 2].min() <= 1e-6:
-        return None
-    grow = SceneDepth.radius + 1
-    return _scene_window(depth, K, depth_scale, corners, grow, grow)
-
-
 def _scene_window(
     depth: np.ndarray, K: np.ndarray, depth_scale: float, points: np.ndarray, grow_u: float, grow_v: float
 ) -> SceneDepth:
@@ -158,9 +156,7 @@ def _scene_window(
         u, v = fx * points[:, 0] / z + cx, fy * points[:, 1] / z + cy
         c0, c1 = _pixel_span(u.min() - grow_u, u.max() + grow_u + 1, w)
         r0, r1 = _pixel_span(v.min() - grow_v, v.max() + grow_v + 1, h)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # the core reads NaN, inf, ≤ 0 as none
-        window = np.divide(depth[r0:r1, c0:c1], depth_scale, dtype=np.float32)
-    return SceneDepth(window, (fx, fy, cx - c0, cy - r0))
+    return SceneDepth(depth, depth_scale, (r0, r1, c0, c1), (fx, fy, cx, cy))
 
 
 #: How far beyond the observed points (× d) the scene window reaches: a pose

@@ -369,7 +369,7 @@ class RivalSearch:
                 align_iterations=FLIP_ALIGN_ITERATIONS,
                 align_distance=settings.candidate_inlier_distance * d,
                 inlier_distance=settings.hypothesis_inlier_distance * d,
-                free_space_tolerance=free_space_tolerance(query, d, settings),
+                free_space_tolerance=free_space_tolerance(query.median_depth, d, settings),
                 model_stride=max(settings.free_space_model_stride, 1),
                 rival_distance=RIVAL_DISTANCE * d,
                 rival_points=RIVAL_POINTS,
@@ -439,7 +439,7 @@ def usable_icp(
     return (
         np.isfinite(rmse)
         & (inliers >= settings.min_icp_inliers)
-        & near_the_cloud(query, codebook, translations, settings)
+        & near_the_cloud(query.centroid, codebook, translations, settings)
     )
 
 

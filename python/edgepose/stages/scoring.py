@@ -46,14 +46,14 @@ class PoseScores(NamedTuple):
         return self.inlier_fraction - self.violation
 
 
-def free_space_tolerance(query: Query, diameter: float, settings: EstimateSettings = DEFAULT_SETTINGS) -> float:
+def free_space_tolerance(median_depth: float, diameter: float, settings: EstimateSettings = DEFAULT_SETTINGS) -> float:
     """How far (metres) a camera-facing model point must stand in front of
     the observed depth to contradict the view: ``settings.free_space_tolerance``
     × ``diameter``, or ``settings.free_space_noise_sigmas`` standard
-    deviations of the sensor's depth noise (``settings.depth_noise``) at
-    the query's median depth, whichever is larger."""
+    deviations of the sensor's depth noise (``settings.depth_noise``) at the
+    observed points' ``median_depth`` (metres), whichever is larger."""
     a, b, c = settings.depth_noise
-    noise = a + b * (query.median_depth - c) ** 2
+    noise = a + b * (median_depth - c) ** 2
     return max(settings.free_space_tolerance * diameter, settings.free_space_noise_sigmas * noise)
 
 
@@ -82,7 +82,7 @@ def score_poses(
         np.ascontiguousarray(rotations),
         np.ascontiguousarray(translations),
         inlier_distance,
-        free_space_tolerance(query, d, settings),
+        free_space_tolerance(query.median_depth, d, settings),
         0 if fit_only else max(settings.free_space_model_stride, 1),
     )
     fit, violation, scene = scored.fit, scored.free_space_violation, scored.scene_violation
@@ -122,10 +122,11 @@ def rim_tolerant_violation(
 
 
 def near_the_cloud(
-    query: Query, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
+    centroid: np.ndarray, codebook: Codebook, translations: np.ndarray, settings: EstimateSettings = DEFAULT_SETTINGS
 ) -> np.ndarray:
     """(H,) bool: whether each pose (model frame → camera, ``translations``
     (H, 3) metres: where the model's centre lands) keeps the model's centre
-    within ``settings.max_centre_offset`` model radii of the observed centroid."""
+    within ``settings.max_centre_offset`` model radii of the observed
+    ``centroid`` ((3,) camera frame, metres: :attr:`Query.centroid`)."""
     radius = 1.0 / codebook.model.scale
-    return np.linalg.norm(translations - query.centroid, axis=1) <= settings.max_centre_offset * radius
+    return np.linalg.norm(translations - centroid, axis=1) <= settings.max_centre_offset * radius

@@ -11,10 +11,14 @@ use pyo3::prelude::*;
 
 use super::arrays::{matrix_array, points_array, rotations_array, triples};
 use super::{guarded, InvalidCloudError, InvalidModelError};
+use crate::index::{ModelIndex, Pose};
 use crate::query::{self, CleanSettings, Pinhole, QuerySettings};
+use crate::scoring::SceneDepth;
 use crate::segment::{segment, SegmentSettings};
 use crate::support::{self, SupportSettings};
-use crate::{grouping, maps, sampling, search, views, visibility};
+use crate::track::{self, TrackFrameSettings, TrackedFit, TrackedScene};
+use crate::{grouping, maps, sampling, search, views, visibility, Point3};
+use std::sync::Arc;
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(fibonacci_viewpoints, m)?)?;
@@ -465,6 +469,91 @@ macro_rules! with_pixels {
     }};
 }
 
+/// The scene test's [`SceneDepth`]: the `window` (rows `top..bottom`,
+/// columns `left..right`; None: all of it) of a [`DepthImage`] frame in
+/// `depth_scale` units per metre, `camera` the frame's intrinsics;
+/// ValueError for a window beyond the frame.
+pub(super) fn scene_of_frame(
+    py: Python<'_>,
+    depth: &Bound<'_, PyAny>,
+    window: Option<[usize; 4]>,
+    depth_scale: f64,
+    camera: Pinhole,
+    radius: usize,
+) -> PyResult<SceneDepth> {
+    let image = DepthImage::from_any(depth)?;
+    let (height, width) = (image.shape()[0], image.shape()[1]);
+    let window = window.unwrap_or([0, height, 0, width]);
+    let scene = with_pixels!(py, image, |d| SceneDepth::from_frame(
+        d,
+        width,
+        window,
+        depth_scale,
+        camera,
+        radius
+    ));
+    scene.ok_or_else(|| {
+        PyValueError::new_err(format!(
+            "scene_window {window:?} must lie within scene_depth of shape {:?}",
+            image.shape()
+        ))
+    })
+}
+
+/// A tracked frame's depth image, its `K`, depth scale and the model's box corners.
+pub(super) type TrackedDepth<'a, 'py> = (
+    &'a Bound<'py, PyAny>,
+    &'a PyReadonlyArray2<'py, f64>,
+    f64,
+    &'a [[f64; 3]],
+);
+
+/// [`track::track_frame`] with the frame's depth (`depth`, `k`,
+/// `depth_scale`, and the model's `box_corners`) when given, without the GIL.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn track_frame_of(
+    py: Python<'_>,
+    index: &Arc<ModelIndex>,
+    points: &[Point3],
+    seen: &[Point3],
+    start: Pose,
+    free_space_tolerance: f64,
+    frame: Option<TrackedDepth<'_, '_>>,
+    settings: &TrackFrameSettings,
+) -> PyResult<TrackedFit> {
+    let Some((depth, k, depth_scale, box_corners)) = frame else {
+        return Ok(py.detach(|| {
+            track::track_frame::<f32>(
+                index,
+                points,
+                seen,
+                start,
+                free_space_tolerance,
+                None,
+                settings,
+            )
+        }));
+    };
+    let camera = pinhole(k)?;
+    let image = DepthImage::from_any(depth)?;
+    let width = image.shape()[1];
+    Ok(with_pixels!(py, image, |d| track::track_frame(
+        index,
+        points,
+        seen,
+        start,
+        free_space_tolerance,
+        Some(TrackedScene {
+            pixels: d,
+            width,
+            camera,
+            depth_scale,
+            box_corners,
+        }),
+        settings
+    )))
+}
+
 /// Pinhole intrinsics of a 3 × 3 matrix `K`; ValueError for another shape.
 fn pinhole(k: &PyReadonlyArray2<'_, f64>) -> PyResult<Pinhole> {
     if k.shape() != [3, 3] {
@@ -527,10 +616,15 @@ fn clean_depth_cloud<'py>(
         let settings = &settings.inner;
         let (image, flags, camera) = masked_image(depth, &mask, &k)?;
         let width = image.shape()[1];
-        let cleaned = with_pixels!(py, image, |d| {
-            let points = query::back_project(d, flags, width, &camera, depth_scale);
-            query::clean_cloud(points.len(), |i| points[i], diameter, settings)
-        });
+        let cleaned = with_pixels!(py, image, |d| query::clean_depth_cloud(
+            d,
+            flags,
+            width,
+            &camera,
+            depth_scale,
+            diameter,
+            settings
+        ));
         let points = cleaned.map_err(|problem| InvalidCloudError::new_err(problem.to_string()))?;
         Ok(points_array(py, &points))
     })

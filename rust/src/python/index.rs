@@ -3,13 +3,14 @@
 
 use numpy::{
     PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
-    PyReadonlyArray3, PyUntypedArrayMethods,
+    PyReadonlyArray3,
 };
 use pyo3::exceptions::{PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex};
 
 use super::arrays::{poses_from, rotations_array, translations_array, triples};
+use super::functions::{scene_of_frame, track_frame_of};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
 use crate::flips::{flip_margin, pose_distances, FlipMargin, FlipSettings};
@@ -17,10 +18,9 @@ use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::query::Pinhole;
 use crate::refine::IcpResult;
-use crate::scoring::{
-    align_translations, score_poses, DepthGrid, PoseScore, SceneDepth, ScoreSettings,
-};
+use crate::scoring::{align_translations, score_poses, DepthGrid, PoseScore, ScoreSettings};
 use crate::threads::{self, Handed};
+use crate::track::TrackFrameSettings;
 use crate::{search, Point3};
 
 /// What `FlipMarginSearch.result` hands Python: the margin and its best
@@ -41,12 +41,14 @@ fn cloud_triples<'a>(array: &'a PyReadonlyArray2<'_, f32>, name: &str) -> PyResu
 /// The nearest observed depth along each ray of an observed cloud (camera
 /// frame, metres): what scoring's free-space test reads. Built once per
 /// query, with cells of about two point `spacing`s. With `scene_depth`
-/// ((H, W) float32 metres, 0: none; the frame around the object) and
-/// `scene_camera` (fx, fy, cx, cy of those pixels), scoring also tests the
-/// model points off the object's silhouette against the scene, each pixel
-/// read as the nearest depth within `scene_radius` pixels. With
-/// `edge_slack`, the silhouette's edge cells read the nearest depth within
-/// one cell (the doubt's test: a real sensor's rim). Immutable.
+/// (the frame: (H, W) uint16, float32 or float64, C-contiguous, in
+/// `scene_depth_scale` units per metre; 0: none), `scene_camera` (fx, fy,
+/// cx, cy of its pixels) and `scene_window` (rows top..bottom, columns
+/// left..right: the part around the object; the whole frame when None),
+/// scoring also tests the model points off the object's silhouette against
+/// the scene, each pixel read as the nearest depth within `scene_radius`
+/// pixels. With `edge_slack`, the silhouette's edge cells read the nearest
+/// depth within one cell (the doubt's test: a real sensor's rim). Immutable.
 #[pyclass(frozen, name = "DepthGrid", module = "edgepose._core")]
 pub struct PyDepthGrid {
     inner: Arc<DepthGrid>,
@@ -55,15 +57,21 @@ pub struct PyDepthGrid {
 #[pymethods]
 impl PyDepthGrid {
     #[new]
-    #[pyo3(signature = (cloud, spacing, scene_depth=None, scene_camera=None, scene_radius=2, edge_slack=false))]
+    #[pyo3(signature = (
+        cloud, spacing, scene_depth=None, scene_camera=None, scene_radius=2, edge_slack=false,
+        scene_window=None, scene_depth_scale=1.0
+    ))]
+    #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         cloud: PyReadonlyArray2<'_, f32>,
         spacing: f64,
-        scene_depth: Option<PyReadonlyArray2<'_, f32>>,
+        scene_depth: Option<&Bound<'_, PyAny>>,
         scene_camera: Option<[f64; 4]>,
         scene_radius: usize,
         edge_slack: bool,
+        scene_window: Option<[usize; 4]>,
+        scene_depth_scale: f64,
     ) -> PyResult<Self> {
         guarded(|| {
             let c = cloud_triples(&cloud, "cloud")?;
@@ -72,7 +80,7 @@ impl PyDepthGrid {
                     "spacing must be finite and non-negative, got {spacing}"
                 )));
             }
-            let scene = match (&scene_depth, scene_camera) {
+            let scene = match (scene_depth, scene_camera) {
                 (None, None) => None,
                 (Some(depth), Some([fx, fy, cx, cy])) => {
                     if ![fx, fy, cx, cy].iter().all(|v| v.is_finite()) || fx <= 0.0 || fy <= 0.0 {
@@ -80,13 +88,19 @@ impl PyDepthGrid {
                             "scene_camera must be finite (fx, fy, cx, cy) with positive focal lengths",
                         ));
                     }
-                    let width = depth.shape()[1];
-                    let pixels = depth.as_slice().map_err(|_| {
-                        PyValueError::new_err(
-                            "scene_depth must be a C-contiguous (H, W) float32 array",
-                        )
-                    })?;
-                    Some((pixels, width, Pinhole { fx, fy, cx, cy }))
+                    if !(scene_depth_scale.is_finite() && scene_depth_scale > 0.0) {
+                        return Err(PyValueError::new_err(
+                            "scene_depth_scale must be a positive number",
+                        ));
+                    }
+                    Some(scene_of_frame(
+                        py,
+                        depth,
+                        scene_window,
+                        scene_depth_scale,
+                        Pinhole { fx, fy, cx, cy },
+                        scene_radius,
+                    )?)
                 }
                 _ => {
                     return Err(PyValueError::new_err(
@@ -103,9 +117,7 @@ impl PyDepthGrid {
                         grid
                     };
                     match scene {
-                        Some((pixels, width, camera)) => {
-                            grid.with_scene(SceneDepth::new(pixels, width, camera, scene_radius))
-                        }
+                        Some(scene) => grid.with_scene(scene),
                         None => grid,
                     }
                 })),
@@ -377,6 +389,92 @@ impl PyModelIndex {
         })
     }
 
+    /// One tracked frame ([`crate::track::track_frame`]): ICP of the
+    /// subsampled observed `points` from the predicted pose (model → camera:
+    /// `rotations` (1, 3, 3), `translations` (1, 3)), then the result scored
+    /// against every observed `seen` point's free space with
+    /// `free_space_tolerance` metres, and against the scene around it given
+    /// the frame (`depth` as `estimate` takes it, `k`, `depth_scale`, and the
+    /// model's `box_corners` (8, 3), model frame): a [`PyTrackedFit`].
+    #[pyo3(signature = (
+        points, seen, rotations, translations, free_space_tolerance, settings,
+        depth=None, k=None, depth_scale=1.0, box_corners=None
+    ))]
+    #[allow(clippy::too_many_arguments)]
+    fn track_frame(
+        &self,
+        py: Python<'_>,
+        points: PyReadonlyArray2<'_, f32>,
+        seen: PyReadonlyArray2<'_, f32>,
+        rotations: PyReadonlyArray3<'_, f64>,
+        translations: PyReadonlyArray2<'_, f64>,
+        free_space_tolerance: f64,
+        settings: &PyTrackFrameSettings,
+        depth: Option<&Bound<'_, PyAny>>,
+        k: Option<PyReadonlyArray2<'_, f64>>,
+        depth_scale: f64,
+        box_corners: Option<PyReadonlyArray2<'_, f64>>,
+    ) -> PyResult<PyTrackedFit> {
+        guarded(|| {
+            let p = cloud_triples(&points, "points")?;
+            let s = cloud_triples(&seen, "seen")?;
+            let starts = poses_from(&rotations, &translations)?;
+            let [start] = starts[..] else {
+                return Err(PyValueError::new_err("track_frame takes one start pose"));
+            };
+            if !(free_space_tolerance.is_finite() && free_space_tolerance >= 0.0) {
+                return Err(PyValueError::new_err(
+                    "free_space_tolerance must be finite and non-negative",
+                ));
+            }
+            let corners = match &box_corners {
+                Some(c) => Some(triples(c, "box_corners").map_err(PyValueError::new_err)?),
+                None => None,
+            };
+            let frame = match (depth, &k, corners) {
+                (None, None, None) => None,
+                (Some(depth), Some(k), Some(corners)) => Some((depth, k, depth_scale, corners)),
+                _ => {
+                    return Err(PyValueError::new_err(
+                        "depth, k and box_corners go together: give all or none",
+                    ))
+                }
+            };
+            let fit = track_frame_of(
+                py,
+                &self.inner,
+                p,
+                s,
+                start,
+                free_space_tolerance,
+                frame,
+                &settings.inner,
+            )?;
+            Ok(PyTrackedFit {
+                icp: Py::new(
+                    py,
+                    PyIcpResults {
+                        results: vec![fit.icp],
+                    },
+                )?,
+                loose: Py::new(
+                    py,
+                    PyScoreResults {
+                        scores: vec![fit.loose],
+                    },
+                )?,
+                tight: Py::new(
+                    py,
+                    PyScoreResults {
+                        scores: vec![fit.tight],
+                    },
+                )?,
+                sides: fit.sides,
+                with_scene: fit.with_scene,
+            })
+        })
+    }
+
     /// Point-to-plane ICP of `cloud` (camera frame) from each start pose
     /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)): one
     /// result per start, in order. A few starts run one after another, or
@@ -636,5 +734,102 @@ impl PyIcpResults {
     #[getter]
     fn rmse<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
         PyArray1::from_vec(py, self.results.iter().map(|r| r.rmse).collect())
+    }
+}
+
+/// The tuning of `ModelIndex.track_frame` ([`TrackFrameSettings`]), built
+/// once per tracker on the Python side (`edgepose.track`), distances in metres.
+#[pyclass(frozen, name = "TrackFrameSettings", module = "edgepose._core")]
+pub struct PyTrackFrameSettings {
+    inner: TrackFrameSettings,
+}
+
+#[pymethods]
+impl PyTrackFrameSettings {
+    #[new]
+    #[pyo3(signature = (
+        *, icp_iterations, icp_max_distance, inlier_distance, tight_inlier_distance, model_stride,
+        diameter, scene_radius, scene_margin
+    ))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        icp_iterations: usize,
+        icp_max_distance: f64,
+        inlier_distance: f64,
+        tight_inlier_distance: f64,
+        model_stride: usize,
+        diameter: f64,
+        scene_radius: usize,
+        scene_margin: f64,
+    ) -> PyResult<Self> {
+        let distances = [
+            icp_max_distance,
+            inlier_distance,
+            tight_inlier_distance,
+            diameter,
+            scene_margin,
+        ];
+        if !distances.iter().all(|v| v.is_finite() && *v >= 0.0) {
+            return Err(PyValueError::new_err(
+                "track frame distances must be finite and non-negative",
+            ));
+        }
+        Ok(Self {
+            inner: TrackFrameSettings {
+                icp_iterations,
+                icp_max_distance,
+                inlier_distance,
+                tight_inlier_distance,
+                model_stride,
+                diameter,
+                scene_radius,
+                scene_margin,
+            },
+        })
+    }
+
+    fn __repr__(&self) -> String {
+        format!("{:?}", self.inner)
+    }
+}
+
+/// What `ModelIndex.track_frame` found: the ICP result (`icp`, one row),
+/// the refined pose's scores at the check's inlier distance (`loose`) and
+/// its fit terms at the tight one (`tight`), the observed points'
+/// bounding-box `sides` (metres) and whether the scene was read.
+#[pyclass(frozen, name = "TrackedFit", module = "edgepose._core")]
+pub struct PyTrackedFit {
+    icp: Py<PyIcpResults>,
+    loose: Py<PyScoreResults>,
+    tight: Py<PyScoreResults>,
+    sides: [f64; 3],
+    with_scene: bool,
+}
+
+#[pymethods]
+impl PyTrackedFit {
+    #[getter]
+    fn icp(&self, py: Python<'_>) -> Py<PyIcpResults> {
+        self.icp.clone_ref(py)
+    }
+
+    #[getter]
+    fn loose(&self, py: Python<'_>) -> Py<PyScoreResults> {
+        self.loose.clone_ref(py)
+    }
+
+    #[getter]
+    fn tight(&self, py: Python<'_>) -> Py<PyScoreResults> {
+        self.tight.clone_ref(py)
+    }
+
+    #[getter]
+    fn sides(&self) -> (f64, f64, f64) {
+        (self.sides[0], self.sides[1], self.sides[2])
+    }
+
+    #[getter]
+    fn with_scene(&self) -> bool {
+        self.with_scene
     }
 }

@@ -87,6 +87,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<index::PyFlipSettings>()?;
     m.add_class::<index::PyFlipMarginSearch>()?;
     m.add_class::<index::PyDepthGrid>()?;
+    m.add_class::<index::PyTrackFrameSettings>()?;
+    m.add_class::<index::PyTrackedFit>()?;
     m.add_class::<confidence::PyConfidenceCurves>()?;
     m.add_function(wrap_pyfunction!(model::compute_maps, m)?)?;
     functions::register(m)?;
