@@ -291,14 +291,20 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
             "## Tracking the clips (GT masks)",
             "",
             f"Each scene's {len(clips.tracker_image_seconds) // max(len(dataset.scene_ids()), 1)} frames in order, one "
-            "`Tracker` per object (`update_depth`), and `estimate_many` on the same frames.",
+            "`Tracker` per object (`update_depth`), the same with `track_many`, and `estimate_many` on the same "
+            "frames.",
             "",
             f"- Tracker: **{_pct(100 * np.mean([f.correct for f in frames]))}** of {len(frames)} object-frames right; "
             + ", ".join(f"{k} {v}" for k, v in modes.items())
             + f"; a tracked object-frame {np.median(tracked_ms) if tracked_ms else float('nan'):.2f} ms at the median.",
-            f"- Per image (all its objects): tracker {np.median(clips.tracker_image_seconds) * 1000:.1f} ms, "
-            f"`estimate_many` {np.median(clips.many_image_seconds) * 1000:.1f} ms at the median: "
-            f"**{np.median(clips.tracker_image_seconds) / np.median(clips.many_image_seconds):.2f}×**; "
+            f"- Per image (all its objects), medians: `track_many` (the objects' trackers in parallel threads, "
+            f"as `estimate_many` runs its objects) {np.median(clips.track_many_image_seconds) * 1000:.1f} ms, "
+            f"the trackers one after another {np.median(clips.tracker_image_seconds) * 1000:.1f} ms, "
+            f"`estimate_many` {np.median(clips.many_image_seconds) * 1000:.1f} ms: "
+            f"**{np.median(clips.track_many_image_seconds) / np.median(clips.many_image_seconds):.2f}×** and "
+            f"{np.median(clips.tracker_image_seconds) / np.median(clips.many_image_seconds):.2f}×; "
+            f"`track_many`'s poses equal the lone trackers' on {sum(clips.track_many_same)} of "
+            f"{len(clips.track_many_same)} object-frames; "
             f"`estimate_many` right on {_pct(100 * np.mean(clips.many_correct))}.",
         ]
         lines += ["", "| object | frames | right | re-initialised |", "| --- | ---: | ---: | ---: |"]

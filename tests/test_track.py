@@ -181,3 +181,34 @@ def test_a_tracked_frame_offers_no_alternatives_from_an_earlier_frame():
     assert pose.mode == "tracked" and pose.alternatives == ()
     # The confidence still reads the doubt the estimate that started the track had.
     assert pose.evidence["alternatives"] == first.evidence["alternatives"]
+
+
+def test_track_many_updates_each_tracker_as_its_own_update_depth_would(drill):
+    mesh, codebook = drill
+    T = render_view(mesh, seed=3).T_cam_obj
+    alone = [edgepose.Tracker(codebook) for _ in range(2)]
+    together = [edgepose.Tracker(codebook) for _ in range(2)]
+    for frame, shift in enumerate((0.0, 0.004, 0.008)):
+        view = render_view(mesh, T_cam_obj=turned(T, 3.0 * frame, shift=(shift, 0.0, 0.0)), seed=20 + frame)
+        depth_mm = np.round(view.depth * 1000).astype(np.uint16)
+        masks = [view.mask, np.zeros_like(view.mask)] if frame == 1 else [view.mask, view.mask]
+        poses = edgepose.track_many(depth_mm, view.camera.K, list(zip(masks, together)))
+        assert len(poses) == 2 and poses.seconds > 0
+        for tracker, mask, pose, error in zip(alone, masks, poses.poses, poses.errors):
+            if not mask.any():  # no pixels: this object's error, its tracker keeps its last pose
+                assert pose is None and isinstance(error, edgepose.InvalidCloudError)
+                continue
+            expected = tracker.update_depth(depth_mm, view.camera.K, mask)
+            assert error is None and pose.mode == expected.mode == ("initialised" if frame == 0 else "tracked")
+            np.testing.assert_array_equal(pose.matrix, expected.matrix)
+            assert pose.confidence == expected.confidence
+
+
+def test_track_many_names_what_is_not_a_tracker_or_does_not_fit_the_frame(drill):
+    mesh, codebook = drill
+    view = render_view(mesh, seed=3)
+    with pytest.raises(edgepose.InvalidArgumentError, match=r"objects\[0\] must be a \(mask, Tracker\) pair"):
+        edgepose.track_many(view.depth, view.camera.K, [(view.mask, codebook)], depth_scale=1.0)
+    with pytest.raises(edgepose.InvalidCloudError, match="mask shape"):
+        edgepose.track_many(view.depth, view.camera.K, [(view.mask[:-1], edgepose.Tracker(codebook))], depth_scale=1.0)
+    assert len(edgepose.track_many(view.depth, view.camera.K, [], depth_scale=1.0)) == 0

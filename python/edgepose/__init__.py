@@ -12,7 +12,7 @@ from edgepose.codebook import Codebook, CodebookError, StaleCodebookWarning, bui
 from edgepose.confidence import TRUST_THRESHOLD
 from edgepose.encoder import Encoder, ModelFilesError
 from edgepose.errors import EdgePoseError, InvalidArgumentError, InvalidCloudError, InvalidModelError, MeshLoadError
-from edgepose.frame import FramePoses, estimate_many
+from edgepose.frame import FramePoses, estimate_many, track_many
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
 from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
 from edgepose.pose import Alternative, Pose, estimate
@@ -40,6 +40,7 @@ __all__ = [
     "cloud_from_depth",
     "estimate",
     "estimate_many",
+    "track_many",
     "InvalidArgumentError",
     "InvalidCloudError",
     "InvalidModelError",

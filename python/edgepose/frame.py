@@ -1,5 +1,7 @@
 """``estimate_many(depth, K, objects)``: the poses of several objects seen in
-one depth frame, each given by its mask and its codebook.
+one depth frame, each given by its mask and its codebook; and
+``track_many(depth, K, objects)``: one frame's update of several objects'
+trackers, each given by its mask and its :class:`edgepose.Tracker`.
 
 It does what :func:`edgepose.estimate` does per object given the frame
 (``estimate(cloud, codebook, depth=depth, K=K)``: poses are checked against
@@ -30,6 +32,7 @@ from edgepose.pose import Pose, check_estimate_inputs, check_types, pose_from_qu
 from edgepose.search import Laps
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
 from edgepose.stages import Query, query_of_cleaned
+from edgepose.track import Tracker
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,6 +137,47 @@ def estimate_many(
     seconds = time.perf_counter() - t0
     timings["total"] = seconds
     return FramePoses(poses, tuple(errors), seconds, timings)
+
+
+def track_many(
+    depth: np.ndarray,
+    K: object,
+    objects: Sequence[tuple[np.ndarray, Tracker]],
+    *,
+    depth_scale: float = DEPTH_SCALE_MM,
+    workers: int | None = None,
+) -> FramePoses:
+    """Each ``(mask, tracker)`` of ``objects`` updated with one frame, as
+    ``tracker.update_depth(depth, K, mask, depth_scale)`` would (same
+    arguments as :func:`estimate_many`), the objects in ``workers`` parallel
+    threads (default: one per core, at most one per object; the Rust core
+    releases the GIL) and the frame checked once. A bad frame (depth, ``K``,
+    a mask's shape, something other than a :class:`edgepose.Tracker`)
+    raises; an object whose mask gives no usable cloud gets ``None`` and its
+    error in :attr:`FramePoses.errors` (its tracker keeps its last pose), and
+    the others their poses. ``seconds`` is the frame's wall-clock time."""
+    t0 = time.perf_counter()
+    workers = max(1, min(workers or usable_cores(), len(objects)))
+    frame = (*checked_depth(depth, K, depth_scale), depth_scale)
+    for i, pair in enumerate(objects):
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2 and isinstance(pair[1], Tracker)):
+            raise InvalidArgumentError(f"objects[{i}] must be a (mask, Tracker) pair, got {pair!r:.80}")
+    masks = [checked_mask(mask, frame[0].shape) for mask, _ in objects]
+
+    def updated(i: int) -> tuple[Pose | None, EdgePoseError | None]:
+        try:
+            return objects[i][1].update_frame(frame, masks[i]), None
+        except EdgePoseError as e:
+            return None, e
+
+    if workers > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            results = list(pool.map(updated, range(len(objects))))
+    else:
+        results = [updated(i) for i in range(len(objects))]
+    poses, errors = zip(*results) if results else ((), ())
+    seconds = time.perf_counter() - t0
+    return FramePoses(tuple(poses), tuple(errors), seconds, {"total": seconds})
 
 
 def _checked_objects(

@@ -25,10 +25,10 @@ import numpy as np
 
 from edgepose.cloud import cloud_from_depth, dilate
 from edgepose.codebook import Codebook
-from edgepose.eval.bop import BopDataset, BopImage, BopRow, BopTarget
+from edgepose.eval.bop import BopDataset, BopGt, BopImage, BopRow, BopTarget
 from edgepose.eval.metrics import PoseErrors, pose_errors
 from edgepose.eval.view_ambiguity import feature_points, view_hides_feature
-from edgepose.frame import estimate_many
+from edgepose.frame import estimate_many, track_many
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.track import Tracker
@@ -223,7 +223,12 @@ class ClipRun:
 
     frames: list[TrackedFrame] = field(default_factory=list)
     tracker_image_seconds: list[float] = field(default_factory=list)
-    """Per image: the tracker updates of all its objects, added up."""
+    """Per image: the tracker updates of all its objects, one after another, added up."""
+    track_many_image_seconds: list[float] = field(default_factory=list)
+    """Per image: one :func:`edgepose.track_many` call on all its objects
+    (their own trackers, in parallel threads)."""
+    track_many_same: list[bool] = field(default_factory=list)
+    """Per object and image: whether ``track_many``'s pose equals the lone tracker's."""
     many_image_seconds: list[float] = field(default_factory=list)
     """Per image: one ``estimate_many`` call on all its objects."""
     many_correct: list[bool] = field(default_factory=list)
@@ -241,45 +246,45 @@ def track_clips(
 ) -> ClipRun:
     """Each scene's images in order, as a clip: one :class:`edgepose.Tracker`
     per object of the scene fed ``update_depth`` with its visible mask
-    (grown by ``grow_px``), and, on the same frames, ``estimate_many`` over
-    all the objects (``images``: only each scene's first so many). Objects
-    with a codebook only; an object less than 10 % visible in a frame is
-    skipped there (its tracker keeps its last pose)."""
+    (grown by ``grow_px``), and, on the same frames, a second set of
+    trackers fed all at once by :func:`edgepose.track_many`, and
+    ``estimate_many`` over all the objects (``images``: only each scene's
+    first so many). Objects with a codebook only; an object less than 10 %
+    visible in a frame is skipped there (its trackers keep their last pose)."""
     objects = real_objects(codebooks)
     run = ClipRun()
     for scene_id in scenes if scenes is not None else dataset.scene_ids():
         trackers: dict[int, Tracker] = {}
+        together: dict[int, Tracker] = {}
         for im_id in dataset.image_ids(scene_id)[:images]:
             image = dataset.image(scene_id, im_id)
             depth = image.depth()
             gts = [g for g in image.gts if g.obj_id in codebooks and g.visib_fract >= 0.1]
             masks = [dilate(image.mask(g.gt_id), grow_px) if grow_px else image.mask(g.gt_id) for g in gts]
+
+            def tracker_of(group: dict[int, Tracker], gt: BopGt) -> Tracker:
+                return group.setdefault(gt.gt_id, Tracker(codebooks[gt.obj_id], settings=settings))
+
             image_seconds = 0.0
+            alone: list[Pose | None] = []
             for gt, mask in zip(gts, masks):
-                tracker = trackers.setdefault(gt.gt_id, Tracker(codebooks[gt.obj_id], settings=settings))
-                obj = objects[gt.obj_id]
                 t0 = time.perf_counter()
                 try:
-                    pose: Pose | None = tracker.update_depth(depth, image.K, mask, depth_scale=1.0)
+                    pose: Pose | None = tracker_of(trackers, gt).update_depth(depth, image.K, mask, depth_scale=1.0)
                 except Exception:  # a lost frame is a result
                     pose = None
                 seconds = time.perf_counter() - t0
                 image_seconds += seconds
-                correct = pose is not None and bool(
-                    pose_errors(obj.points, pose.matrix, gt.matrix, obj.diameter, obj.symmetric).correct_add_or_s
-                )
-                run.frames.append(
-                    TrackedFrame(
-                        scene_id,
-                        im_id,
-                        gt.obj_id,
-                        pose.mode if pose is not None else "lost",
-                        seconds,
-                        correct,
-                        pose.confidence if pose is not None else 0.0,
-                    )
-                )
+                alone.append(pose)
+                mode, confidence = (pose.mode, pose.confidence) if pose is not None else ("lost", 0.0)
+                right = _right(objects[gt.obj_id], pose, gt)
+                run.frames.append(TrackedFrame(scene_id, im_id, gt.obj_id, mode, seconds, right, confidence))
             run.tracker_image_seconds.append(image_seconds)
+            tracked = track_many(
+                depth, image.K, [(m, tracker_of(together, g)) for g, m in zip(gts, masks)], depth_scale=1.0
+            )
+            run.track_many_image_seconds.append(tracked.seconds)
+            run.track_many_same += [_same_pose(a, b) for a, b in zip(alone, tracked.poses)]
             many = estimate_many(
                 depth,
                 image.K,
@@ -288,12 +293,19 @@ def track_clips(
                 settings=settings,
             )
             run.many_image_seconds.append(many.seconds)
-            for gt, pose in zip(gts, many.poses):
-                obj = objects[gt.obj_id]
-                run.many_correct.append(
-                    pose is not None
-                    and bool(
-                        pose_errors(obj.points, pose.matrix, gt.matrix, obj.diameter, obj.symmetric).correct_add_or_s
-                    )
-                )
+            run.many_correct += [_right(objects[g.obj_id], p, g) for g, p in zip(gts, many.poses)]
     return run
+
+
+def _right(obj: RealObject, pose: Pose | None, gt: BopGt) -> bool:
+    """Whether ``pose`` is depth-fair right for the annotated instance ``gt``."""
+    if pose is None:
+        return False
+    return bool(pose_errors(obj.points, pose.matrix, gt.matrix, obj.diameter, obj.symmetric).correct_add_or_s)
+
+
+def _same_pose(a: Pose | None, b: Pose | None) -> bool:
+    """Whether two trackers gave the same pose (or both none)."""
+    if a is None or b is None:
+        return a is b
+    return bool(np.array_equal(a.matrix, b.matrix)) and a.mode == b.mode
