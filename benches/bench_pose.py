@@ -461,17 +461,16 @@ def versions() -> str:
 
 def estimate_settings(settings: EstimateSettings) -> str:
     """Every field of ``settings``, for the report (changed ones in bold)."""
-    default = DEFAULT_SETTINGS.as_dict()
+    default = DEFAULT_SETTINGS.flat()
     return ", ".join(
-        f"`{k}={v}`" if v == default[k] else f"**`{k}={v}`** (default {default[k]})"
-        for k, v in settings.as_dict().items()
+        f"`{k}={v}`" if v == default[k] else f"**`{k}={v}`** (default {default[k]})" for k, v in settings.flat().items()
     )
 
 
 def settings_from(changes: list[str]) -> EstimateSettings:
     """The default EstimateSettings with ``FIELD=VALUE`` changes (ValueError
     naming an unknown field or a value of the wrong type)."""
-    fields = DEFAULT_SETTINGS.as_dict()
+    fields = DEFAULT_SETTINGS.flat()
     parsed: dict[str, object] = {}
     for change in changes:
         field_name, _, text = change.partition("=")

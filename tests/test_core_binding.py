@@ -4,6 +4,7 @@ are typed, and it raises edgepose's own exceptions."""
 from __future__ import annotations
 
 import ast
+import dataclasses
 import inspect
 from pathlib import Path
 
@@ -20,8 +21,8 @@ STUB = Path(edgepose.__file__).parent / "_core.pyi"
 def _stub() -> tuple[dict[str, list[str]], dict[str, dict[str, list[str] | None]]]:
     """Functions (name → parameters) and classes (name → member →
     parameters, None for properties) declared in ``_core.pyi``; a parameter
-    reads ``name``, ``*name`` when keyword-only, and ends in ``=`` when it
-    has a default."""
+    reads ``name``, ``*name`` when keyword-only, ``**name`` for keywords
+    collected, and ends in ``=`` when it has a default."""
     functions: dict[str, list[str]] = {}
     classes: dict[str, dict[str, list[str] | None]] = {}
 
@@ -31,6 +32,7 @@ def _stub() -> tuple[dict[str, list[str]], dict[str, dict[str, list[str] | None]
         defaulted = {a.arg for a in positional[len(positional) - len(args.defaults) :]}
         defaulted |= {a.arg for a, d in zip(args.kwonlyargs, args.kw_defaults) if d is not None}
         names = [a.arg for a in positional] + [f"*{a.arg}" for a in args.kwonlyargs]
+        names += [f"**{args.kwarg.arg}"] if args.kwarg else []
         return [n + ("=" if n.lstrip("*") in defaulted else "") for n in names if n != "self"]
 
     for node in ast.parse(STUB.read_text()).body:
@@ -48,8 +50,9 @@ def _stub() -> tuple[dict[str, list[str]], dict[str, dict[str, list[str] | None]
 
 def _runtime_parameters(obj) -> list[str]:
     """``obj``'s parameters as :func:`_stub` writes them (kind and default too)."""
+    stars = {inspect.Parameter.KEYWORD_ONLY: "*", inspect.Parameter.VAR_KEYWORD: "**"}
     return [
-        ("*" if p.kind is p.KEYWORD_ONLY else "") + p.name + ("=" if p.default is not p.empty else "")
+        stars.get(p.kind, "") + p.name + ("=" if p.default is not p.empty else "")
         for p in inspect.signature(obj).parameters.values()
         if p.name != "self"
     ]
@@ -159,3 +162,17 @@ def test_the_core_raises_edgeposes_own_exceptions():
         _core.clean_depth_cloud(np.ones((4, 4)), np.ones((4, 5), bool), np.eye(3), 1.0, 0.1, _clean_settings(2048))
     with pytest.raises(ValueError, match="reference 2"):
         index.pose_distances(np.eye(3)[None].repeat(2, 0), np.zeros((2, 3)), 2, False, 64)
+
+
+def test_segmentation_defaults_come_from_the_core_and_every_field_reaches_it():
+    core = _core.SegmentSettings()
+    python = edgepose.SegmentSettings()
+    for name, value in dataclasses.asdict(python).items():
+        assert getattr(core, name) == value, name
+    changed = edgepose.SegmentSettings(shadow_spacings=1.5, ramp_neighbours=7, steep_faces=False).core()
+    assert (changed.shadow_spacings, changed.ramp_neighbours, changed.steep_faces) == (1.5, 7, False)
+    with pytest.raises(TypeError, match='no field "shadow"'):
+        _core.SegmentSettings(shadow=1.0)
+    settings = edgepose.EstimateSettings().with_(**{"segmentation.shadow_spacings": 2.0}, k=8)
+    assert settings.segmentation.shadow_spacings == 2.0 and settings.k == 8
+    assert settings.flat()["segmentation.shadow_spacings"] == 2.0

@@ -64,7 +64,7 @@ def test_segmentation_drops_a_spilled_background_ring_and_keeps_an_occluded_obje
     visible = obj.copy()
     visible[:, 77:83] = False
     cloud = edgepose.cloud_from_depth(depth, K, visible | ring, depth_scale=1.0, max_jump=None).astype(np.float32)
-    keep, spacing = _core.segment_object(cloud, 0.07)
+    keep, spacing = _core.segment_object(cloud, 0.07, edgepose.SegmentSettings().core())
     on_object = cloud[:, 2] < 0.62
     assert keep[on_object].all(), "both halves of the occluded object are kept"
     assert not keep[~on_object].any(), "the wall ring behind it is dropped"
@@ -84,8 +84,8 @@ def test_segmentation_keeps_a_box_face_seen_nearly_edge_on(steepness):
     in_box = (cloud - T[:3, 3]) @ T[:3, :3]
     on_end = np.abs(in_box[:, 0]) > 0.105 - 0.002
     assert on_end.sum() > 100
-    keep_before, _ = _core.segment_object(cloud, 0.27, steep_faces=False)
-    keep, _ = _core.segment_object(cloud, 0.27)
+    keep_before, _ = _core.segment_object(cloud, 0.27, edgepose.SegmentSettings(steep_faces=False).core())
+    keep, _ = _core.segment_object(cloud, 0.27, edgepose.SegmentSettings().core())
     assert keep_before[on_end].mean() < 0.6, "the failure this step mends"
     assert keep[on_end].mean() > 0.9
     assert keep[~on_end].mean() > 0.99 and keep_before[~on_end].mean() > 0.99

@@ -16,7 +16,7 @@ from edgepose.frame import FramePoses, estimate_many, track_many
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
 from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
 from edgepose.pose import Alternative, Pose, estimate
-from edgepose.settings import EstimateSettings
+from edgepose.settings import EstimateSettings, SegmentSettings
 from edgepose.symmetry import Symmetry, detect_symmetry
 from edgepose.track import Tracker, TrackSettings
 from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
@@ -32,6 +32,7 @@ __all__ = [
     "FramePoses",
     "ModelFilesError",
     "Pose",
+    "SegmentSettings",
     "Symmetry",
     "TRUST_THRESHOLD",
     "TrackSettings",

@@ -22,13 +22,7 @@ def top_k(
     codes: npt.NDArray[np.float32], query: npt.NDArray[np.float32], k: int
 ) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
 def segment_object(
-    cloud: npt.NDArray[np.float32],
-    diameter: float,
-    shadow_spacings: float = 4.0,
-    max_shadowed_fraction: float = 0.5,
-    min_component_fraction: float = 0.01,
-    max_component_offset: float = 0.8,
-    steep_faces: bool = True,
+    cloud: npt.NDArray[np.float32], diameter: float, settings: SegmentSettings
 ) -> tuple[npt.NDArray[np.bool_], float]: ...
 def ray_alignment(centroid: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 def back_project(
@@ -77,12 +71,7 @@ def prepare_query(
     map_points: int,
     keypoints: int,
     min_points: int,
-    segment: bool,
-    shadow_spacings: float,
-    max_shadowed_fraction: float,
-    min_component_fraction: float,
-    max_component_offset: float,
-    steep_faces: bool,
+    segmentation: SegmentSettings | None,
 ) -> tuple[
     npt.NDArray[np.float32],
     float,
@@ -199,6 +188,41 @@ class DepthGrid:
         scene_window: tuple[int, int, int, int] | None = None,
         scene_depth_scale: float = 1.0,
     ) -> None: ...
+
+class SegmentSettings:
+    def __init__(self, **fields: float | int | bool) -> None: ...
+    @property
+    def neighbours(self) -> int: ...
+    @property
+    def outlier_sigmas(self) -> float: ...
+    @property
+    def cluster_spacings(self) -> float: ...
+    @property
+    def min_component_fraction(self) -> float: ...
+    @property
+    def max_component_offset(self) -> float: ...
+    @property
+    def max_shadowed_fraction(self) -> float: ...
+    @property
+    def shadow_spacings(self) -> float: ...
+    @property
+    def occluder_points(self) -> int: ...
+    @property
+    def occluder_fraction(self) -> float: ...
+    @property
+    def occluder_margin(self) -> float: ...
+    @property
+    def steep_faces(self) -> bool: ...
+    @property
+    def ramp_spacings(self) -> float: ...
+    @property
+    def ramp_neighbours(self) -> int: ...
+    @property
+    def ramp_noise(self) -> float: ...
+    @property
+    def ramp_min_noise_spacings(self) -> float: ...
+    @property
+    def ramp_link(self) -> float: ...
 
 class TrackFrameSettings:
     def __init__(

@@ -8,9 +8,16 @@ CLI, the catalogue, the benchmarks — sees it.
 
 from __future__ import annotations
 
+import functools
 import os
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
+
+from edgepose import _core
+
+#: The segmentation's defaults, defined once in the core (``SegmentSettings::default``
+#: in ``rust/src/segment.rs``); the evidence for each is in ``docs/tuning.md``.
+_SEGMENT_DEFAULTS = _core.SegmentSettings()
 
 
 def usable_cores() -> int:
@@ -22,6 +29,68 @@ def usable_cores() -> int:
     if hasattr(os, "sched_getaffinity"):
         return max(1, len(os.sched_getaffinity(0)))
     return os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Tuning of stage 1's segmentation (``rust/src/segment.rs``): which
+    points of the observed cloud are the object. Distances are in the
+    cloud's median point spacing ("spacings") or the object's diameter;
+    image neighbourhoods are taken by viewing direction."""
+
+    neighbours: int = _SEGMENT_DEFAULTS.neighbours
+    """Clouds of fewer than twice this many points are kept whole; a point
+    with fewer than a quarter of this many neighbours is an outlier."""
+    outlier_sigmas: float = _SEGMENT_DEFAULTS.outlier_sigmas
+    """A point with fewer than ``1 / (1 + outlier_sigmas)`` of the cloud's
+    median number of neighbours is a flying pixel."""
+    cluster_spacings: float = _SEGMENT_DEFAULTS.cluster_spacings
+    """Points closer than this many spacings are one surface: surfaces
+    apart by a depth jump fall into separate components."""
+    min_component_fraction: float = _SEGMENT_DEFAULTS.min_component_fraction
+    """A component apart from the largest is kept as part of the object
+    when it has at least this fraction of the largest one's points ..."""
+    max_component_offset: float = _SEGMENT_DEFAULTS.max_component_offset
+    """... its centroid lies within this many diameters of the largest one's ..."""
+    max_shadowed_fraction: float = _SEGMENT_DEFAULTS.max_shadowed_fraction
+    """... and less than this fraction of its points lie in the largest
+    one's shadow (a mask's spill onto the table or wall behind is all shadow)."""
+    shadow_spacings: float = _SEGMENT_DEFAULTS.shadow_spacings
+    """The shadow: within this many spacings of the largest component in
+    the image, and behind it."""
+    occluder_points: int = _SEGMENT_DEFAULTS.occluder_points
+    """A component in front of at least this many of the object's points ..."""
+    occluder_fraction: float = _SEGMENT_DEFAULTS.occluder_fraction
+    """... smaller than this fraction of the object ..."""
+    occluder_margin: float = _SEGMENT_DEFAULTS.occluder_margin
+    """... and this many diameters or more in front of them is an occluder
+    the mask spilled onto: dropped."""
+    steep_faces: bool = _SEGMENT_DEFAULTS.steep_faces
+    """Put back the faces the steps above cut away because they are seen
+    nearly edge-on (sparse in space, dense in the image): dropped points
+    whose depth is a smooth ramp meeting the object's edge."""
+    ramp_spacings: float = _SEGMENT_DEFAULTS.ramp_spacings
+    """A steep face's image neighbourhood, spacings at the median depth."""
+    ramp_neighbours: int = _SEGMENT_DEFAULTS.ramp_neighbours
+    """A dropped point's depth plane is fitted to it and at least this many
+    dropped image neighbours ..."""
+    ramp_noise: float = _SEGMENT_DEFAULTS.ramp_noise
+    """... with an rms residual within this many times the object's own
+    (the sensor's noise) ..."""
+    ramp_min_noise_spacings: float = _SEGMENT_DEFAULTS.ramp_min_noise_spacings
+    """... or this many spacings, whichever is larger (quantised depth)."""
+    ramp_link: float = _SEGMENT_DEFAULTS.ramp_link
+    """An image neighbour within this many of those tolerances of the plane
+    in depth links the face to the object."""
+
+    def core(self) -> _core.SegmentSettings:
+        """These settings as the core takes them (built once)."""
+        return _core_segment(self)
+
+
+@functools.lru_cache(maxsize=64)
+def _core_segment(settings: SegmentSettings) -> _core.SegmentSettings:
+    return _core.SegmentSettings(**asdict(settings))
 
 
 @dataclass(frozen=True)
@@ -38,22 +107,9 @@ class EstimateSettings:
     segment: bool = True
     """Drop statistical outliers and components split off by depth jumps
     (background a spilled mask picked up, flying pixels) before anything else."""
-    min_component_fraction: float = 0.01
-    """A segmented component apart from the largest is kept as part of the
-    object when it has at least this fraction of the largest one's points ..."""
-    max_component_offset: float = 0.8
-    """... and its centroid lies within this many diameters of the largest one's."""
-    shadow_spacings: float = 4.0
-    """A segmented component counts as background when most of it lies in
-    another's shadow: within this many point spacings of it in the image,
-    and behind it (a mask's spill onto the table or wall behind)."""
-    max_shadowed_fraction: float = 0.5
-    """... "most" being at least this fraction of its points."""
-    steep_faces: bool = True
-    """Put back the faces segmentation cut away because they are seen nearly
-    edge-on (sparse in space, dense in the image): dropped outliers and small
-    fragments whose depth is a smooth ramp meeting the object's edge; a whole
-    component dropped as spill stays out (``rust/src/segment.rs``)."""
+    segmentation: SegmentSettings = SegmentSettings()
+    """How stage 1 tells the object's points from spill and flying pixels
+    (with ``segment`` on): :class:`SegmentSettings`."""
     support_plane: bool = True
     """Given the depth frame (``estimate``, ``estimate_many``, a
     ``Tracker``'s frames): drop the cloud's points on the surface the
@@ -235,12 +291,31 @@ class EstimateSettings:
     """Seed of the (deterministic) subsampling of the cloud for ICP."""
 
     def with_(self, **changes: Any) -> EstimateSettings:
-        """A copy with some fields changed."""
+        """A copy with some fields changed; a stage's field by its dotted
+        name: ``with_(**{"segmentation.shadow_spacings": 1.0})``."""
+        nested: dict[str, dict[str, Any]] = {}
+        for name in [n for n in changes if "." in n]:
+            stage, _, field_name = name.partition(".")
+            nested.setdefault(stage, {})[field_name] = changes.pop(name)
+        for stage, stage_changes in nested.items():
+            changes[stage] = replace(getattr(self, stage), **stage_changes)
         return replace(self, **changes)
 
     def as_dict(self) -> dict[str, object]:
         """Every field and its value (for reports)."""
         return asdict(self)
+
+    def flat(self) -> dict[str, object]:
+        """Every field and its value, a stage's fields by their dotted names
+        (``segmentation.shadow_spacings``): what :meth:`with_` takes."""
+        out: dict[str, object] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, SegmentSettings):
+                out.update({f"{f.name}.{k}": v for k, v in asdict(value).items()})
+            else:
+                out[f.name] = value
+        return out
 
 
 DEFAULT_SETTINGS = EstimateSettings()

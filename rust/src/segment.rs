@@ -41,7 +41,8 @@ use crate::Point3;
 const NONE: usize = usize::MAX;
 
 /// Tuning of [`segment`]; every distance is relative, so one setting
-/// serves any range and object size.
+/// serves any range and object size. `Default` is where each default is
+/// defined (the Python layer's `edgepose.SegmentSettings` reads them).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SegmentSettings {
     /// Clouds of fewer than twice this many points are kept whole; a point
@@ -72,10 +73,8 @@ pub struct SegmentSettings {
     pub occluder_points: usize,
     /// ... and has fewer points than this fraction of the object's is an
     /// occluder the mask spilled onto, and is dropped. A larger one may be
-    /// the object's own part in front of another (kept). Set on the tuning
-    /// shapes: 0.05 kept every level's figure but one view and gained 6 of
-    /// 48 views at 70 % visible with 5 px spill; 0.1–0.3 cost views when
-    /// parts of the object hid others.
+    /// the object's own part in front of another (kept; evidence in
+    /// `docs/tuning.md`).
     pub occluder_fraction: f64,
     /// ... and lies this many object diameters or more in front of the
     /// points it hides (a steep face of the object split off by sparse

@@ -198,12 +198,7 @@ def query_of_cleaned(
         codebook.map_points,
         settings.keypoints,
         MIN_POINTS,
-        settings.segment,
-        settings.shadow_spacings,
-        settings.max_shadowed_fraction,
-        settings.min_component_fraction,
-        settings.max_component_offset,
-        settings.steep_faces,
+        settings.segmentation.core() if settings.segment else None,
     )
     scene = None if frame is None else scene_around(*frame, points, model.diameter)
     return Query(points, spacing, centroid, r_corr, query_map, keypoints, scene)

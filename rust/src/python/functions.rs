@@ -6,8 +6,9 @@ use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
     PyReadonlyArray3, PyUntypedArrayMethods,
 };
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
 
 use super::arrays::{matrix_array, points_array, rotations_array, triples};
 use super::{guarded, InvalidCloudError, InvalidModelError};
@@ -28,6 +29,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(map_neighbours, m)?)?;
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
+    m.add_class::<PySegmentSettings>()?;
     m.add_function(wrap_pyfunction!(segment_object, m)?)?;
     m.add_function(wrap_pyfunction!(back_project, m)?)?;
     m.add_function(wrap_pyfunction!(on_support_plane, m)?)?;
@@ -200,21 +202,15 @@ fn top_k<'py>(
 
 /// Which points of an observed cloud (camera frame, metres) belong to an
 /// object `diameter` metres across (outliers and background components
-/// removed; see the core's `segment` module for `shadow_spacings` and
-/// `max_shadowed_fraction`): `(keep (N,) bool, spacing)`, spacing being the
-/// median nearest-neighbour distance in metres.
+/// removed, as `settings` tune it; see the core's `segment` module):
+/// `(keep (N,) bool, spacing)`, spacing being the median nearest-neighbour
+/// distance in metres.
 #[pyfunction]
-#[pyo3(signature = (cloud, diameter, shadow_spacings = 4.0, max_shadowed_fraction = 0.5, min_component_fraction = 0.01, max_component_offset = 0.8, steep_faces = true))]
-#[allow(clippy::too_many_arguments)]
 fn segment_object<'py>(
     py: Python<'py>,
     cloud: PyReadonlyArray2<'py, f32>,
     diameter: f64,
-    shadow_spacings: f64,
-    max_shadowed_fraction: f64,
-    min_component_fraction: f64,
-    max_component_offset: f64,
-    steep_faces: bool,
+    settings: &PySegmentSettings,
 ) -> PyResult<(Bound<'py, PyArray1<bool>>, f64)> {
     guarded(|| {
         let c = triples(&cloud, "cloud").map_err(InvalidCloudError::new_err)?;
@@ -223,18 +219,74 @@ fn segment_object<'py>(
                 "diameter must be a positive number of metres, got {diameter}"
             )));
         }
-        let settings = SegmentSettings {
-            shadow_spacings,
-            max_shadowed_fraction,
-            min_component_fraction,
-            max_component_offset,
-            steep_faces,
-            ..SegmentSettings::default()
-        };
-        let found = py.detach(|| segment(c, diameter, &settings));
+        let found = py.detach(|| segment(c, diameter, &settings.inner));
         Ok((PyArray1::from_vec(py, found.keep), found.spacing))
     })
 }
+
+/// Stage 1's segmentation ([`SegmentSettings`]): the core's defaults
+/// (`SegmentSettings::default`, where each is defined) for the fields not
+/// given by keyword; every field readable. Built once per setting on the
+/// Python side (`edgepose.SegmentSettings`).
+#[pyclass(frozen, name = "SegmentSettings", module = "edgepose._core")]
+pub struct PySegmentSettings {
+    inner: SegmentSettings,
+}
+
+/// The constructor and a getter of each field of [`PySegmentSettings`].
+macro_rules! segment_settings_fields {
+    ($($name:ident: $kind:ty),* $(,)?) => {
+        #[pymethods]
+        impl PySegmentSettings {
+            #[new]
+            #[pyo3(signature = (**fields))]
+            fn new(fields: Option<&Bound<'_, PyDict>>) -> PyResult<Self> {
+                let mut inner = SegmentSettings::default();
+                for (key, value) in fields.into_iter().flat_map(|f| f.iter()) {
+                    match key.extract::<String>()?.as_str() {
+                        $(stringify!($name) => inner.$name = value.extract::<$kind>()?,)*
+                        other => {
+                            return Err(PyTypeError::new_err(format!(
+                                "SegmentSettings has no field {other:?}"
+                            )))
+                        }
+                    }
+                }
+                Ok(Self { inner })
+            }
+
+            $(
+                #[getter]
+                fn $name(&self) -> $kind {
+                    self.inner.$name
+                }
+            )*
+
+            fn __repr__(&self) -> String {
+                format!("{:?}", self.inner)
+            }
+        }
+    };
+}
+
+segment_settings_fields!(
+    neighbours: usize,
+    outlier_sigmas: f64,
+    cluster_spacings: f64,
+    min_component_fraction: f64,
+    max_component_offset: f64,
+    max_shadowed_fraction: f64,
+    shadow_spacings: f64,
+    occluder_points: usize,
+    occluder_fraction: f64,
+    occluder_margin: f64,
+    steep_faces: bool,
+    ramp_spacings: f64,
+    ramp_neighbours: usize,
+    ramp_noise: f64,
+    ramp_min_noise_spacings: f64,
+    ramp_link: f64,
+);
 
 /// The limits of [`query::clean_cloud`] ([`CleanSettings`]), built once on
 /// the Python side (`edgepose.cloud`, where each is defined).
@@ -325,10 +377,9 @@ fn clean_rows<T: numpy::Element + Copy + Into<f64> + Sync>(
 
 /// [`query::prepare_query`] (stage 1) on cleaned (N, 3) float32 `points`:
 /// `(points kept (n, 3) f32, spacing m, centroid (3,) f64, r_corr (3, 3)
-/// f64, map (map_points, 3) f32, keypoints (keypoints, 3) f32)`. `segment`
-/// false keeps every point (spacing 0).
+/// f64, map (map_points, 3) f32, keypoints (keypoints, 3) f32)`, the points
+/// segmented as `segmentation` tunes it; None keeps every point (spacing 0).
 #[pyfunction]
-#[pyo3(signature = (points, diameter, scale, map_points, keypoints, min_points, segment, shadow_spacings, max_shadowed_fraction, min_component_fraction, max_component_offset, steep_faces))]
 #[allow(clippy::too_many_arguments, clippy::type_complexity)]
 fn prepare_query<'py>(
     py: Python<'py>,
@@ -338,12 +389,7 @@ fn prepare_query<'py>(
     map_points: usize,
     keypoints: usize,
     min_points: usize,
-    segment: bool,
-    shadow_spacings: f64,
-    max_shadowed_fraction: f64,
-    min_component_fraction: f64,
-    max_component_offset: f64,
-    steep_faces: bool,
+    segmentation: Option<PyRef<'py, PySegmentSettings>>,
 ) -> PyResult<(
     Bound<'py, PyArray2<f32>>,
     f64,
@@ -363,14 +409,7 @@ fn prepare_query<'py>(
             )));
         }
         let settings = QuerySettings {
-            segment: segment.then_some(SegmentSettings {
-                shadow_spacings,
-                max_shadowed_fraction,
-                min_component_fraction,
-                max_component_offset,
-                steep_faces,
-                ..SegmentSettings::default()
-            }),
+            segment: segmentation.map(|s| s.inner),
             min_points,
             map_points,
             keypoints,
