@@ -46,14 +46,21 @@ def test_another_objects_cloud_is_not_trusted(drill):
 def test_a_turned_pose_is_less_trusted_than_the_right_one(drill):
     """The same scoring terms for the estimate and for a wrong pose 90° off:
     the probability model must prefer the right one."""
-    from edgepose.confidence import evidence_of
+    from dataclasses import replace
+
+    from edgepose.confidence import FitEvidence, SearchEvidence, evidence_of
 
     model = edgepose.encoder.default_encoder().confidence
-    good = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2, 0.2, 0.5, 0.0, 0.5, 0, 1.0)
-    bad = evidence_of(0.6, 0.8, 0.8, 0.2, 0.7, 2, True, 0.0, 0.4, 1.2, 0.2, 0.0, 0.98, 1.0, 2, 0.0)
+    fits = FitEvidence(1.0, 1.0, 0.3, 0.0, off_silhouette=0.1, observed_extent=1.2, translation_constraint=0.2)
+    found = SearchEvidence(0.95, False, True, 1.0, 0.5, 0.0, 0.5, alternatives=0, alternative_margin=1.0)
+    good = evidence_of(fits, found)
+    bad = evidence_of(
+        FitEvidence(0.6, 0.8, 0.8, 0.2, off_silhouette=0.4, observed_extent=1.2, translation_constraint=0.2),
+        SearchEvidence(0.7, True, True, 0.0, 0.0, 0.98, 1.0, alternatives=2, alternative_margin=0.0),
+    )
     assert model.probability(good) > 0.9 and model.probability(bad) < 0.2
     # Other poses that explain the view as well make the same pose less trusted.
-    tied = evidence_of(1.0, 1.0, 0.3, 0.0, 0.95, 1, True, 1.0, 0.1, 1.2, 0.2, 0.5, 0.0, 0.5, 3, 0.0)
+    tied = evidence_of(fits, replace(found, alternatives=3, alternative_margin=0.0))
     assert model.probability(tied) < model.probability(good)
 
 

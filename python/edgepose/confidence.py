@@ -298,42 +298,91 @@ def box_sides(points: np.ndarray) -> list[float]:
     return [float(np.ptp(points[:, k])) for k in range(3)]
 
 
-def evidence_of(
-    inlier_fraction: float,
-    loose_inlier_fraction: float,
-    fit_ratio: float,
-    free_space_violation: float,
-    score: float,
-    searches: int,
-    refined: bool,
-    margin: float,
-    off_silhouette: float,
-    observed_extent: float,
-    translation_constraint: float,
-    flip_margin: float,
-    rmse_ratio: float,
-    flip_fit_ratio: float,
-    alternatives: int,
-    alternative_margin: float,
-    scene_violation: float = 0.0,
-) -> dict[str, float]:
-    """The evidence (:data:`FEATURES`) as a dict of floats."""
+@dataclass(frozen=True)
+class FitEvidence:
+    """The evidence a pose's scores give (:data:`FEATURES`), measured on the
+    view: by the search that found the pose and afresh by each tracked frame."""
+
+    inlier_fraction: float
+    loose_inlier_fraction: float
+    fit: float
+    """Truncated fit over the hypothesis inlier distance, 0–1."""
+    free_space_violation: float
+    off_silhouette: float
+    observed_extent: float
+    translation_constraint: float
+    scene_violation: float = 0.0
+
+    @classmethod
+    def of(cls, tight: Any, loose: Any, tight_distance: float, observed_extent: float) -> FitEvidence:
+        """From one pose's scores (first row) at the hypothesis inlier
+        distance ``tight_distance`` (metres; ``tight``: its fit terms) and at
+        the doubt's ``loose`` one (its free-space terms), and the observed
+        points' extent over the diameter."""
+        return cls(
+            inlier_fraction=tight.inlier_fraction[0],
+            loose_inlier_fraction=loose.inlier_fraction[0],
+            fit=tight.fit[0] / tight_distance,
+            free_space_violation=loose.free_space_violation[0],
+            off_silhouette=loose.off_silhouette[0],
+            observed_extent=observed_extent,
+            translation_constraint=tight.translation_constraint[0],
+            scene_violation=loose.scene_violation[0],
+        )
+
+
+@dataclass(frozen=True)
+class SearchEvidence:
+    """The evidence the search that found a pose gives (:data:`FEATURES`):
+    its retrieval score, how far the pose stood out from its rivals, its
+    turns and alternatives. A tracked pose carries its estimate's."""
+
+    score: float
+    searched_twice: bool
+    refined: bool
+    margin: float
+    flip_margin: float
+    rmse_ratio: float
+    flip_fit_ratio: float
+    alternatives: int
+    alternative_margin: float
+
+    @classmethod
+    def carried(cls, evidence: dict[str, float], score: float) -> SearchEvidence:
+        """The search terms of an earlier pose's ``evidence`` (its retrieval
+        ``score`` where the evidence has none), for a pose refined from it
+        by ICP on one search's worth of points."""
+        return cls(
+            score=evidence.get("score", score),
+            searched_twice=False,
+            refined=True,
+            margin=evidence.get("margin", 1.0),
+            flip_margin=evidence.get("flip_margin", 1.0),
+            rmse_ratio=evidence.get("rmse_ratio", 0.0),
+            flip_fit_ratio=evidence.get("flip_fit_ratio", 0.0),
+            alternatives=int(evidence.get("alternatives", 0.0)),
+            alternative_margin=evidence.get("alternative_margin", 1.0),
+        )
+
+
+def evidence_of(fit: FitEvidence, search: SearchEvidence) -> dict[str, float]:
+    """The evidence (:data:`FEATURES`) as a dict of floats, in their order."""
     return {
-        "inlier_fraction": float(inlier_fraction),
-        "loose_inlier_fraction": float(loose_inlier_fraction),
-        "fit": float(fit_ratio),
-        "free_space_violation": float(free_space_violation),
-        "score": float(score),
-        "searched_twice": float(searches > 1),
-        "refined": float(refined),
-        "margin": float(margin),
-        "off_silhouette": float(off_silhouette),
-        "observed_extent": float(observed_extent),
-        "translation_constraint": float(translation_constraint),
-        "flip_margin": float(flip_margin),
-        "rmse_ratio": float(rmse_ratio),
-        "flip_fit_ratio": float(flip_fit_ratio),
-        "alternatives": float(alternatives),
-        "alternative_margin": float(alternative_margin),
-        "scene_violation": float(scene_violation),
+        "inlier_fraction": float(fit.inlier_fraction),
+        "loose_inlier_fraction": float(fit.loose_inlier_fraction),
+        "fit": float(fit.fit),
+        "free_space_violation": float(fit.free_space_violation),
+        "score": float(search.score),
+        "searched_twice": float(search.searched_twice),
+        "refined": float(search.refined),
+        "margin": float(search.margin),
+        "off_silhouette": float(fit.off_silhouette),
+        "observed_extent": float(fit.observed_extent),
+        "translation_constraint": float(fit.translation_constraint),
+        "flip_margin": float(search.flip_margin),
+        "rmse_ratio": float(search.rmse_ratio),
+        "flip_fit_ratio": float(search.flip_fit_ratio),
+        "alternatives": float(search.alternatives),
+        "alternative_margin": float(search.alternative_margin),
+        "scene_violation": float(fit.scene_violation),
     }

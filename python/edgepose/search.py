@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepose.codebook import Codebook
-from edgepose.confidence import ConfidenceModel, box_sides, evidence_of
+from edgepose.confidence import ConfidenceModel, FitEvidence, SearchEvidence, box_sides, evidence_of
 from edgepose.encoder import Encoder
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages import (
@@ -269,24 +269,20 @@ def judged(
         )
         flips = flip_margin(tight, rival)
     others = alternatives(codebook, result, searched.hypotheses, flips.rival, settings)
+    d = codebook.model.diameter
     evidence = evidence_of(
-        inlier_fraction=tight.inlier_fraction[0],
-        loose_inlier_fraction=loose.inlier_fraction[0],
-        fit_ratio=tight.fit[0] / (settings.hypothesis_inlier_distance * codebook.model.diameter),
-        free_space_violation=loose.free_space_violation[0],
-        score=found.similarity[result.candidate],
-        searches=searches,
-        refined=result.refined,
-        margin=result.margin,
-        off_silhouette=loose.off_silhouette[0],
-        observed_extent=search.observed_extent,
-        translation_constraint=tight.translation_constraint[0],
-        flip_margin=flips.margin,
-        flip_fit_ratio=float(tight.fit[0] / max(flips.rival.fits[0], 1e-12)) if len(flips.rival.fits) else 0.0,
-        rmse_ratio=result.rmse_ratio,
-        alternatives=len(others.net),
-        alternative_margin=float(tight.net[0] - others.net[0]) if len(others.net) else 1.0,
-        scene_violation=loose.scene_violation[0],
+        FitEvidence.of(tight, loose, settings.hypothesis_inlier_distance * d, search.observed_extent),
+        SearchEvidence(
+            score=found.similarity[result.candidate],
+            searched_twice=searches > 1,
+            refined=result.refined,
+            margin=result.margin,
+            flip_margin=flips.margin,
+            rmse_ratio=result.rmse_ratio,
+            flip_fit_ratio=float(tight.fit[0] / max(flips.rival.fits[0], 1e-12)) if len(flips.rival.fits) else 0.0,
+            alternatives=len(others.net),
+            alternative_margin=float(tight.net[0] - others.net[0]) if len(others.net) else 1.0,
+        ),
     )
     confidence = search.judge.probability(evidence) if search.judge else float("nan")
     return Judgement(evidence, confidence, flips, others)

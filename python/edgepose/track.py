@@ -43,7 +43,7 @@ from edgepose.cloud import (
     cloud_from_depth,
 )
 from edgepose.codebook import Codebook
-from edgepose.confidence import evidence_of
+from edgepose.confidence import FitEvidence, SearchEvidence, evidence_of
 from edgepose.encoder import Encoder, default_encoder
 from edgepose.pose import Pose, check_types, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
@@ -255,8 +255,12 @@ class Tracker:
             and near_the_cloud(seen.mean(axis=0, dtype=np.float64), codebook, t[None], settings)[0]
         ):
             return None
-        tight_distance = settings.hypothesis_inlier_distance * d
-        evidence = _tracked_evidence(last, scores, tight, math.hypot(*fit.sides) / d, tight_distance)
+        # What tracking does not recompute (the retrieval's score, how far the
+        # pose stood out from its rivals) is carried from the estimate that started the track.
+        evidence = evidence_of(
+            FitEvidence.of(tight, scores, settings.hypothesis_inlier_distance * d, math.hypot(*fit.sides) / d),
+            SearchEvidence.carried(last.evidence, last.score),
+        )
         judge = self.encoder.judge(with_scene=fit.with_scene)
         confidence = judge.probability(evidence) if judge else float("nan")
         if last.unseen_turn is not None:  # tracking cannot tell the turn the view left open either
@@ -280,37 +284,6 @@ class Tracker:
             alternatives=(),
             mode="tracked",
         )
-
-
-def _tracked_evidence(
-    last: Pose, scores: _core.ScoreResults, tight: _core.ScoreResults, observed_extent: float, tight_distance: float
-) -> dict[str, float]:
-    """The confidence model's evidence for a tracked pose: its ``scores`` at
-    the tracker's inlier distance and ``tight`` at ``tight_distance``
-    (metres, the search's hypothesis distance). What tracking does not
-    recompute (the retrieval's cosine score, how far the pose stood out
-    from its rivals) is carried from ``last``, back to the estimate that
-    started the track."""
-    carried = last.evidence
-    return evidence_of(
-        inlier_fraction=tight.inlier_fraction[0],
-        loose_inlier_fraction=scores.inlier_fraction[0],
-        fit_ratio=tight.fit[0] / tight_distance,
-        free_space_violation=scores.free_space_violation[0],
-        score=carried.get("score", last.score),
-        searches=1,
-        refined=True,
-        margin=carried.get("margin", 1.0),
-        off_silhouette=scores.off_silhouette[0],
-        observed_extent=observed_extent,
-        translation_constraint=tight.translation_constraint[0],
-        flip_margin=carried.get("flip_margin", 1.0),
-        rmse_ratio=carried.get("rmse_ratio", 0.0),
-        flip_fit_ratio=carried.get("flip_fit_ratio", 0.0),
-        alternatives=int(carried.get("alternatives", 0.0)),
-        alternative_margin=carried.get("alternative_margin", 1.0),
-        scene_violation=scores.scene_violation[0],
-    )
 
 
 def _scaled_turn(R: np.ndarray, share: float) -> np.ndarray:
