@@ -5,8 +5,9 @@ derandomised slice of each in CI):
 - ``load``: damaged codebook files (``Codebook.load``);
 - ``estimate``: clouds of any dtype, shape, layout and damage (``estimate``);
 - ``depth``: depth images, intrinsics, masks and depth scales (``cloud_from_depth``);
-- ``frame``: the same frames given to ``estimate(depth=, K=)``, ``estimate_many``
-  and ``Tracker.update_depth`` beside a good cloud;
+- ``frame``: the same frames given to ``estimate(depth=, K=)``, ``estimate_many``,
+  ``Tracker.update_depth`` and ``track_many`` (a tracker already on the
+  object: the tracked frame's path) beside a good cloud;
 - ``bop``: a one-image BOP folder cut from the real frames, one file damaged
   (``BopDataset``: models, targets, cameras, annotations, depth, masks).
 

@@ -300,7 +300,7 @@ def check_cloud_from_depth(value: tuple) -> str:
     return "points"
 
 
-FRAME_DOORS = ("estimate", "estimate_many", "Tracker.update_depth")
+FRAME_DOORS = ("estimate", "estimate_many", "Tracker.update_depth", "track_many")
 
 
 def check_frame(value: tuple, door: str, cloud: np.ndarray, codebook: edgepose.Codebook) -> str:
@@ -319,8 +319,17 @@ def check_frame(value: tuple, door: str, cloud: np.ndarray, codebook: edgepose.C
                 poses = [p for p in frame.poses if p is not None]
                 if not poses:
                     return "errors per object"
-            else:
+            elif door == "Tracker.update_depth":
                 poses = [edgepose.Tracker(codebook).update_depth(depth, K, mask, depth_scale)]
+            else:  # a tracker that already follows the object: the tracked frame's path
+                tracker = edgepose.Tracker(codebook)
+                tracker.update(cloud)
+                frame = edgepose.track_many(depth, K, [(mask, tracker)], depth_scale=depth_scale, workers=1)
+                if any(e is not None and not isinstance(e, edgepose.EdgePoseError) for e in frame.errors):
+                    raise AssertionError(f"untyped error {frame.errors}")
+                poses = [p for p in frame.poses if p is not None]
+                if not poses:
+                    return "errors per object"
         except edgepose.EdgePoseError as e:
             return type(e).__name__
     for pose in poses:

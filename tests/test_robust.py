@@ -238,3 +238,16 @@ def test_a_table_the_object_stands_on_costs_no_second_search_given_the_frame(dri
             )
             searches[plane] += pose.searches
     assert searches[True] < searches[False], searches
+
+
+def test_a_frame_without_columns_is_no_scene_and_no_crash(drill):
+    # Found by benches/fuzz.py: a (66, 0) depth image beside a good cloud.
+    mesh, codebook = drill
+    view = render_view(mesh, seed=3)
+    empty = np.zeros((66, 0), np.float32)
+    pose = edgepose.estimate(view.cloud, codebook, depth=empty, K=view.camera.K, depth_scale=1.0)
+    assert np.isfinite(pose.matrix).all()
+    tracker = edgepose.Tracker(codebook)
+    tracker.update(view.cloud)
+    frame = edgepose.track_many(empty, view.camera.K, [(np.zeros((66, 0), bool), tracker)], depth_scale=1.0)
+    assert frame.poses == (None,) and isinstance(frame.errors[0], edgepose.InvalidCloudError)

@@ -70,21 +70,26 @@ impl SceneDepth {
     }
 
     /// From the `window` (rows `top..bottom`, columns `left..right`) of a
-    /// row-major `width`-wide depth frame in `depth_scale` units per metre
-    /// (0 or not finite: no measurement), `camera` the frame's intrinsics;
-    /// `radius` pixels of neighbourhood. Each pixel is converted in float32
-    /// (`depth as f32 / depth_scale as f32`), as numpy's float32 division
-    /// would. None when the window is not within the frame.
+    /// row-major depth frame of `[height, width]` pixels in `depth_scale`
+    /// units per metre (0 or not finite: no measurement), `camera` the
+    /// frame's intrinsics; `radius` pixels of neighbourhood. Each pixel is
+    /// converted in float32 (`depth as f32 / depth_scale as f32`), as numpy's
+    /// float32 division would. None when the window is not within the frame
+    /// or the frame does not hold `height` × `width` pixels.
     pub fn from_frame<T: Copy + Into<f64>>(
         frame: &[T],
-        width: usize,
+        [height, width]: [usize; 2],
         [top, bottom, left, right]: [usize; 4],
         depth_scale: f64,
         camera: Pinhole,
         radius: usize,
     ) -> Option<Self> {
-        let height = frame.len().checked_div(width).unwrap_or(0);
-        if top > bottom || left > right || bottom > height || right > width {
+        if frame.len() != height * width
+            || top > bottom
+            || left > right
+            || bottom > height
+            || right > width
+        {
             return None;
         }
         let scale = depth_scale as f32;
@@ -783,7 +788,8 @@ mod tests {
         let frame: Vec<u16> = (0..200u16)
             .map(|i| if i % 7 == 0 { 0 } else { 600 + i })
             .collect();
-        let window = SceneDepth::from_frame(&frame, 20, [2, 8, 5, 15], 1000.0, camera, 1).unwrap();
+        let window =
+            SceneDepth::from_frame(&frame, [10, 20], [2, 8, 5, 15], 1000.0, camera, 1).unwrap();
         let cut: Vec<f32> = (2..8)
             .flat_map(|v| frame[v * 20 + 5..v * 20 + 15].iter())
             .map(|&d| d as f32 / 1000.0)
@@ -801,8 +807,16 @@ mod tests {
             assert_eq!(window.pixel(&p), alone.pixel(&p));
             assert_eq!(window.in_front(&p, 0.01), alone.in_front(&p, 0.01));
         }
-        assert!(SceneDepth::from_frame(&frame, 20, [2, 11, 5, 15], 1000.0, camera, 1).is_none());
-        assert!(SceneDepth::from_frame(&frame, 20, [2, 8, 15, 5], 1000.0, camera, 1).is_none());
+        assert!(
+            SceneDepth::from_frame(&frame, [10, 20], [2, 11, 5, 15], 1000.0, camera, 1).is_none()
+        );
+        assert!(
+            SceneDepth::from_frame(&frame, [10, 20], [2, 8, 15, 5], 1000.0, camera, 1).is_none()
+        );
+        // A frame without columns holds an empty window of any height.
+        let empty = SceneDepth::from_frame::<u16>(&[], [66, 0], [0, 66, 0, 0], 1000.0, camera, 1);
+        let empty = empty.unwrap();
+        assert_eq!((empty.width, empty.height), (0, 66));
     }
 
     #[test]

@@ -39,12 +39,12 @@ pub struct TrackFrameSettings {
     pub scene_margin: f64,
 }
 
-/// The depth frame around a tracked object: a row-major `width`-wide image
-/// in `depth_scale` units per metre, its intrinsics, and the model's
-/// bounding-box corners (model frame) that place the window.
+/// The depth frame around a tracked object: a row-major image of `[height,
+/// width]` pixels in `depth_scale` units per metre, its intrinsics, and the
+/// model's bounding-box corners (model frame) that place the window.
 pub struct TrackedScene<'a, T> {
     pub pixels: &'a [T],
-    pub width: usize,
+    pub shape: [usize; 2],
     pub camera: Pinhole,
     pub depth_scale: f64,
     pub box_corners: &'a [[f64; 3]],
@@ -139,7 +139,7 @@ fn scene_window<T: Copy + Into<f64>>(
             .collect();
         (points, grow * camera.fx, grow * camera.fy)
     };
-    let height = scene.pixels.len().checked_div(scene.width).unwrap_or(0);
+    let [height, width] = scene.shape;
     let (mut u0, mut u1, mut v0, mut v1) = (
         f64::INFINITY,
         f64::NEG_INFINITY,
@@ -154,11 +154,11 @@ fn scene_window<T: Copy + Into<f64>>(
         );
         (u0, u1, v0, v1) = (u0.min(u), u1.max(u), v0.min(v), v1.max(v));
     }
-    let (left, right) = pixel_span(u0 - grow_u, u1 + grow_u + 1.0, scene.width);
+    let (left, right) = pixel_span(u0 - grow_u, u1 + grow_u + 1.0, width);
     let (top, bottom) = pixel_span(v0 - grow_v, v1 + grow_v + 1.0, height);
     SceneDepth::from_frame(
         scene.pixels,
-        scene.width,
+        scene.shape,
         [top, bottom, left, right],
         scene.depth_scale,
         camera,
@@ -266,7 +266,7 @@ mod tests {
         let pixels = vec![0u16; 640 * 480];
         let scene = TrackedScene {
             pixels: &pixels,
-            width: 640,
+            shape: [480, 640],
             camera: Pinhole {
                 fx: 572.4,
                 fy: 573.6,

@@ -525,7 +525,7 @@ pub(super) fn scene_of_frame(
     let window = window.unwrap_or([0, height, 0, width]);
     let scene = with_pixels!(py, image, |d| SceneDepth::from_frame(
         d,
-        width,
+        [height, width],
         window,
         depth_scale,
         camera,
@@ -575,7 +575,7 @@ pub(super) fn track_frame_of(
     };
     let camera = pinhole(k)?;
     let image = DepthImage::from_any(depth)?;
-    let width = image.shape()[1];
+    let shape = [image.shape()[0], image.shape()[1]];
     Ok(with_pixels!(py, image, |d| track::track_frame(
         index,
         points,
@@ -584,7 +584,7 @@ pub(super) fn track_frame_of(
         free_space_tolerance,
         Some(TrackedScene {
             pixels: d,
-            width,
+            shape,
             camera,
             depth_scale,
             box_corners,
