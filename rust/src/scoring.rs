@@ -50,23 +50,16 @@ impl SceneDepth {
     /// neighbourhood.
     pub fn new(depth: &[f32], width: usize, camera: Pinhole, radius: usize) -> Self {
         let height = depth.len().checked_div(width).unwrap_or(0);
-        let depth = depth[..width * height]
-            .iter()
-            .map(|&z| {
-                if z.is_finite() && z > 0.0 {
-                    z
-                } else {
-                    f32::INFINITY
-                }
-            })
-            .collect();
-        Self {
+        let whole = [0, height, 0, width];
+        Self::from_frame(
+            &depth[..width * height],
+            [height, width],
+            whole,
+            1.0,
             camera,
-            width,
-            height,
             radius,
-            depth,
-        }
+        )
+        .expect("the whole frame is its own window")
     }
 
     /// From the `window` (rows `top..bottom`, columns `left..right`) of a

@@ -220,6 +220,17 @@ mod tests {
         }
     }
 
+    /// `points` (model frame) under `pose`, camera frame.
+    fn posed(points: &[Point3], pose: &Pose) -> Vec<Point3> {
+        points
+            .iter()
+            .map(|p| {
+                let c = pose.apply(p);
+                [c.x as f32, c.y as f32, c.z as f32]
+            })
+            .collect()
+    }
+
     #[test]
     fn a_frame_off_by_a_little_is_tracked_back_onto_its_points() {
         let model = bracket();
@@ -228,14 +239,7 @@ mod tests {
             rotation: Matrix3::identity(),
             translation: Vector3::new(0.0, 0.0, 0.6),
         };
-        let seen: Vec<Point3> = model
-            .points
-            .iter()
-            .map(|p| {
-                let c = truth.apply(p);
-                [c.x as f32, c.y as f32, c.z as f32]
-            })
-            .collect();
+        let seen = posed(&model.points, &truth);
         let start = Pose {
             translation: truth.translation + Vector3::new(0.004, -0.003, 0.002),
             ..truth
@@ -280,14 +284,7 @@ mod tests {
             rotation: *nalgebra::Rotation3::from_euler_angles(0.4, -0.7, 1.1).matrix(),
             translation: Vector3::new(0.03, -0.02, 0.6),
         };
-        let seen: Vec<Point3> = model
-            .points
-            .iter()
-            .map(|p| {
-                let c = pose.apply(p);
-                [c.x as f32, c.y as f32, c.z as f32]
-            })
-            .collect();
+        let seen = posed(&model.points, &pose);
         let window = scene_window(&scene, &pose, &seen, &settings()).unwrap();
         let r = settings().scene_radius as f64;
         for p in &seen {
