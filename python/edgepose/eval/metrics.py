@@ -50,15 +50,25 @@ def add_s(model_points: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray) -> floa
     points = _points(model_points)
     # Estimated points in the gt object frame: same distances, less cancellation.
     relative = np.linalg.inv(_pose(T_gt)) @ _pose(T_est)
-    est = _transform(relative, points)
-    est_sq = np.einsum("ij,ij->i", est, est)
+    distances = nearest_distances(points, _transform(relative, points))
     total = 0.0
     for start in range(0, len(points), _CHUNK):
-        gt = points[start : start + _CHUNK]
-        sq = est_sq[None, :] - 2.0 * gt @ est.T  # ‖gt‖² is the same for every column
-        nearest = est[np.argmin(sq, axis=1)]
-        total += float(np.linalg.norm(gt - nearest, axis=1).sum())
+        total += float(distances[start : start + _CHUNK].sum())
     return total / len(points)
+
+
+def nearest_distances(query: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N,) distance (metres) from each ``query`` point to its nearest of
+    ``points`` ((M, 3), same frame): brute force in chunks of rows, the
+    chosen neighbour's distance recomputed exactly."""
+    points_sq = np.einsum("ij,ij->i", points, points)
+    out = np.empty(len(query))
+    for start in range(0, len(query), _CHUNK):
+        rows = query[start : start + _CHUNK]
+        sq = points_sq[None, :] - 2.0 * rows @ points.T  # ‖row‖² is the same for every column
+        nearest = points[np.argmin(sq, axis=1)]
+        out[start : start + _CHUNK] = np.linalg.norm(rows - nearest, axis=1)
+    return out
 
 
 def add_or_s(model_points: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray, symmetric: bool) -> float:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from edgepose.eval.metrics import nearest_distances
 from edgepose.unseen_turn import NearAxis
 from edgepose.views import rotation_about
 
@@ -41,12 +42,11 @@ def feature_points(points: np.ndarray, axis: NearAxis, diameter: float) -> np.nd
     the near symmetry about ``axis``: some turn in :data:`TURNS_DEG` carries
     them more than ``OFF_SURFACE × diameter`` from every model point."""
     points = np.asarray(points, dtype=np.float64)
-    limit = (OFF_SURFACE * diameter) ** 2
     feature = np.zeros(len(points), dtype=bool)
     for angle in TURNS_DEG:
         R = rotation_about(axis.axis, np.radians(angle))
         turned = (points - axis.point) @ R.T + axis.point
-        feature |= _nearest_sq(turned, points) > limit
+        feature |= nearest_distances(turned, points) > OFF_SURFACE * diameter
     return feature
 
 
@@ -83,15 +83,3 @@ def view_hides_feature(
     feature points (``features``: :func:`feature_points` of ``points``) at
     the true pose: the turn about the near axis is the view's to leave open."""
     return bool(features.any()) and seen_share(points[features], T_cam_obj, depth, K, mask) < MIN_SEEN_SHARE
-
-
-def _nearest_sq(query: np.ndarray, points: np.ndarray, rows: int = 512) -> np.ndarray:
-    """Squared distance of each query point to its nearest in ``points``
-    (brute force in chunks of rows; model samples are a few thousand)."""
-    out = np.empty(len(query))
-    p2 = np.einsum("ij,ij->i", points, points)
-    for start in range(0, len(query), rows):
-        q = query[start : start + rows]
-        sq = np.einsum("ij,ij->i", q, q)[:, None] - 2.0 * q @ points.T + p2[None, :]
-        out[start : start + rows] = np.maximum(sq.min(axis=1), 0.0)
-    return out
