@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import edgepose
 import numpy as np
@@ -212,3 +213,57 @@ def test_track_many_names_what_is_not_a_tracker_or_does_not_fit_the_frame(drill)
     with pytest.raises(edgepose.InvalidCloudError, match="mask shape"):
         edgepose.track_many(view.depth, view.camera.K, [(view.mask[:-1], edgepose.Tracker(codebook))], depth_scale=1.0)
     assert len(edgepose.track_many(view.depth, view.camera.K, [], depth_scale=1.0)) == 0
+
+
+def test_track_many_shares_its_threads_and_a_forked_child_starts_its_own(drill):
+    """``track_many`` (and ``estimate_many``) keep their threads between
+    frames; a child forked after the parent used them has none of them and
+    must not wait on them forever. The child's poses are the parent's."""
+    import multiprocessing
+
+    if "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    mesh, codebook = drill
+    view = render_view(mesh, seed=3)
+    objects = [(view.mask, edgepose.Tracker(codebook)) for _ in range(3)]
+    parent = edgepose.track_many(view.depth, view.camera.K, objects, depth_scale=1.0, workers=2)
+    _FORKED.update(view=view, codebook=codebook)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(_track_many_in_child).get(timeout=120)
+    for pose, matrix in zip(parent.poses, child):
+        np.testing.assert_array_equal(pose.matrix, matrix)
+
+
+#: What a forked child tracks: set in the parent before it forks.
+_FORKED: dict = {}
+
+
+def _track_many_in_child() -> list[np.ndarray]:
+    view, codebook = _FORKED["view"], _FORKED["codebook"]
+    objects = [(view.mask, edgepose.Tracker(codebook)) for _ in range(3)]
+    poses = edgepose.track_many(view.depth, view.camera.K, objects, depth_scale=1.0, workers=2)
+    return [pose.matrix for pose in poses.poses]
+
+
+def test_work_shared_between_threads_comes_back_in_order_and_raises_when_no_thread_runs():
+    from edgepose.frame import _each
+
+    in_work = [0]
+    lock = threading.Lock()
+
+    def work(i: int) -> int:
+        if i == 2:
+            raise ValueError("object 2")
+        with lock:
+            in_work[0] += 1
+        time.sleep(0.01)
+        with lock:
+            in_work[0] -= 1
+        return i * i
+
+    assert _each(lambda i: i * i, 7, 3) == [0, 1, 4, 9, 16, 25, 36]
+    assert _each(lambda i: i, 1, 4) == [0]
+    assert _each(lambda i: i, 0, 2) == []
+    with pytest.raises(ValueError, match="object 2"):
+        _each(work, 6, 2)
+    assert in_work[0] == 0  # no thread is left inside the work

@@ -17,10 +17,14 @@ Units are metres; camera frames follow OpenCV; poses are ``T_cam_obj``.
 
 from __future__ import annotations
 
+import itertools
+import os
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -33,6 +37,8 @@ from edgepose.search import Laps
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
 from edgepose.stages import Query, query_of_cleaned
 from edgepose.track import Tracker
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,39 +107,33 @@ def estimate_many(
         laps("prepare_query")
         return query, laps, None
 
-    pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
     # Objects searched in parallel already share the cores: each pose's
     # coarse ICPs run one after another and its flip rival is found after
     # its polish, not on another core beside them.
     search_settings = (
-        settings.with_(flip_rival_beside_polish=False, coarse_icp_on_two_cores=False) if pool else settings
+        settings.with_(flip_rival_beside_polish=False, coarse_icp_on_two_cores=False) if workers > 1 else settings
     )
-    each = pool.map if pool else map  # one worker: this thread, no pool
-    try:
-        started = time.perf_counter()
-        queries, laps, errors = zip(*each(prepared, range(len(objects)))) if objects else ((), (), ())
-        timings["queries"] = time.perf_counter() - started
-        started = time.perf_counter()
-        usable = [i for i, q in enumerate(queries) if q is not None]
-        codes, spectra = encoder.encode(np.stack([queries[i].map for i in usable])) if usable else ((), ())
-        encoded = dict(zip(usable, zip(codes, spectra)))
-        timings["encode"] = time.perf_counter() - started
-        started = time.perf_counter()
+    started = time.perf_counter()
+    queries, laps, errors = zip(*_each(prepared, len(objects), workers)) if objects else ((), (), ())
+    timings["queries"] = time.perf_counter() - started
+    started = time.perf_counter()
+    usable = [i for i, q in enumerate(queries) if q is not None]
+    codes, spectra = encoder.encode(np.stack([queries[i].map for i in usable])) if usable else ((), ())
+    encoded = dict(zip(usable, zip(codes, spectra)))
+    timings["encode"] = time.perf_counter() - started
+    started = time.perf_counter()
 
-        def searched(i: int) -> Pose | None:
-            query = queries[i]
-            if query is None:
-                return None
-            now = time.perf_counter()  # its search starts now: the wait is not its time
-            laps[i].start += now - laps[i].clock
-            laps[i].clock = now
-            return pose_from_query(query, codebooks[i], encoder, refine, search_settings, laps[i], encoded[i])
+    def searched(i: int) -> Pose | None:
+        query = queries[i]
+        if query is None:
+            return None
+        now = time.perf_counter()  # its search starts now: the wait is not its time
+        laps[i].start += now - laps[i].clock
+        laps[i].clock = now
+        return pose_from_query(query, codebooks[i], encoder, refine, search_settings, laps[i], encoded[i])
 
-        poses = tuple(each(searched, range(len(objects))))
-        timings["search"] = time.perf_counter() - started
-    finally:
-        if pool:
-            pool.shutdown()
+    poses = tuple(_each(searched, len(objects), workers))
+    timings["search"] = time.perf_counter() - started
     seconds = time.perf_counter() - t0
     timings["total"] = seconds
     return FramePoses(poses, tuple(errors), seconds, timings)
@@ -170,14 +170,53 @@ def track_many(
         except EdgePoseError as e:
             return None, e
 
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            results = list(pool.map(updated, range(len(objects))))
-    else:
-        results = [updated(i) for i in range(len(objects))]
+    results = _each(updated, len(objects), workers)
     poses, errors = zip(*results) if results else ((), ())
     seconds = time.perf_counter() - t0
     return FramePoses(tuple(poses), tuple(errors), seconds, {"total": seconds})
+
+
+def _each(work: Callable[[int], T], count: int, workers: int) -> list[T]:
+    """``[work(i) for i in range(count)]``, shared by this thread and
+    ``workers - 1`` pool threads, each taking the next ``i`` when done with
+    its last (the work releases the GIL in the core). This thread starts at
+    once, and a pool thread that has not woken by the time the work is done
+    is not waited for: waking one can take longer than a tracked object.
+    The first exception is raised once every thread is done."""
+    results: list[Any] = [None] * count
+    indices = itertools.count()  # next() is atomic: each i is taken once
+
+    def take() -> None:
+        while (i := next(indices)) < count:
+            results[i] = work(i)
+
+    helpers = [_pool(workers - 1).submit(take) for _ in range(min(workers, count) - 1)]
+    try:
+        take()
+    finally:
+        running = [helper for helper in helpers if not helper.cancel()]
+        for helper in running:
+            helper.exception()  # waits for it
+    for helper in running:
+        helper.result()
+    return results
+
+
+_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """A pool of ``threads`` threads that every :func:`estimate_many` and
+    :func:`track_many` call of this process shares: started once, as the
+    Rust core's threads are, since starting and joining threads for each
+    frame costs a tracked frame's share of a millisecond. A forked child,
+    whose parent's threads are not there, starts its own."""
+    key = (os.getpid(), threads)
+    with _POOLS_LOCK:
+        if key not in _POOLS:
+            _POOLS[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="edgepose")
+        return _POOLS[key]
 
 
 def _checked_objects(
