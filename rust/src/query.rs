@@ -70,18 +70,32 @@ fn each_measured_pixel<T: Copy + Into<f64>>(
     lens: &BoxLens,
     mut visit: impl FnMut(usize, [f64; 3]),
 ) {
+    each_masked_pixel(depth, mask, area, lens.width, |pixel, u, row, d| {
+        if let Some(p) = lens.point(u, row, d) {
+            visit(pixel, p);
+        }
+    });
+}
+
+/// `visit(pixel, u, row, depth)` for each flagged pixel of `area`: its
+/// row-major index into `depth`, its column and row in the box, its depth.
+fn each_masked_pixel<T: Copy>(
+    depth: &[T],
+    mask: &[bool],
+    area: &MaskBox,
+    width: usize,
+    mut visit: impl FnMut(usize, usize, usize, T),
+) {
     for v in area.top..area.bottom {
-        let start = v * lens.width + area.left;
-        let span = start..v * lens.width + area.right;
+        let start = v * width + area.left;
+        let span = start..v * width + area.right;
         for (u, (d, _)) in depth[span.clone()]
             .iter()
             .zip(&mask[span])
             .enumerate()
             .filter(|(_, (_, m))| **m)
         {
-            if let Some(p) = lens.point(u, v - area.top, *d) {
-                visit(start + u, p);
-            }
+            visit(start + u, u, v - area.top, *d);
         }
     }
 }
@@ -98,11 +112,15 @@ struct BoxLens {
     top: usize,
     left: usize,
     depth_scale: f64,
+    /// `1 / fx`, `1 / fy`, `1 / depth_scale`: [`measured_within`](Self::measured_within)'s
+    /// multiplications, where divisions would cost most of a pixel's time.
+    reciprocals: [f64; 3],
 }
 
 impl BoxLens {
     fn new(camera: &Pinhole, width: usize, area: &MaskBox, depth_scale: f64) -> Self {
         Self {
+            reciprocals: [1.0 / camera.fx, 1.0 / camera.fy, 1.0 / depth_scale],
             fx: camera.fx,
             fy: camera.fy,
             cx: camera.cx - area.left as f64,
@@ -126,6 +144,32 @@ impl BoxLens {
         let y = (row as f64 - self.cy) * z / self.fy;
         // Absurd intrinsics or scale (fx of 1e-200) overflow: no point, as without depth.
         (x.is_finite() && y.is_finite()).then_some([x, y, z])
+    }
+
+    /// Whether the box's pixel (`u`, `row`) has a [`point`](Self::point)
+    /// (None: no measurement) within `limit` of the camera on every axis:
+    /// the same answer as `point(...).map(|p| within(&p, limit))`. Reciprocals
+    /// stand for the divisions; the divisions decide only where the products
+    /// land within a billionth of a bound, far more than their rounding.
+    fn measured_within<T: Copy + Into<f64>>(
+        &self,
+        u: usize,
+        row: usize,
+        depth: T,
+        limit: f64,
+    ) -> Option<bool> {
+        let d: f64 = depth.into();
+        if d.is_nan() || d <= 0.0 {
+            return None; // so is z = d / depth_scale: no measurement
+        }
+        let [fx, fy, scale] = self.reciprocals;
+        let z = d * scale;
+        let x = (u as f64 - self.cx) * z * fx;
+        let y = (row as f64 - self.cy) * z * fy;
+        if z >= 1e-300 && x.abs().max(y.abs()).max(z) < limit * (1.0 - 1e-9) {
+            return Some(true);
+        }
+        self.point(u, row, depth).map(|p| within(&p, limit))
     }
 
     /// [`point`](Self::point) of `pixel`, a row-major index into the image.
@@ -295,10 +339,12 @@ pub fn clean_depth_cloud<T: Copy + Into<f64>>(
     let lens = BoxLens::new(camera, width, &area, depth_scale);
     let limit = settings.max_coordinate;
     let (mut total, mut valid) = (0, Vec::new());
-    each_measured_pixel(depth, mask, &area, &lens, |pixel, p| {
-        total += 1;
-        if within(&p, limit) {
-            valid.push(pixel);
+    each_masked_pixel(depth, mask, &area, width, |pixel, u, row, d| {
+        if let Some(within) = lens.measured_within(u, row, d, limit) {
+            total += 1;
+            if within {
+                valid.push(pixel);
+            }
         }
     });
     check_count(valid.len(), total, settings)?;
@@ -364,17 +410,47 @@ pub fn draw(n: usize, count: usize, seed: u64) -> Vec<usize> {
     if count >= n {
         return (0..n).collect();
     }
-    let mut rng = SplitMix64::new(seed);
-    let mut chosen = HashSet::with_capacity(count);
-    for j in n - count..n {
-        let t = ((rng.next_u64() as u128 * (j as u128 + 1)) >> 64) as usize; // uniform in 0..=j
-        if !chosen.insert(t) {
-            chosen.insert(j);
-        }
+    if n / 64 <= 16 * count {
+        // A bit per index: no hashing, and read out in order without a sort.
+        let mut chosen = vec![0u64; n.div_ceil(64)];
+        floyd(n, count, seed, |i| {
+            let (word, bit) = (i / 64, 1u64 << (i % 64));
+            let fresh = chosen[word] & bit == 0;
+            chosen[word] |= bit;
+            fresh
+        });
+        return chosen
+            .iter()
+            .enumerate()
+            .flat_map(|(word, &bits)| {
+                let mut bits = bits;
+                std::iter::from_fn(move || {
+                    (bits != 0).then(|| {
+                        let bit = bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        word * 64 + bit
+                    })
+                })
+            })
+            .collect();
     }
+    let mut chosen = HashSet::with_capacity(count);
+    floyd(n, count, seed, |i| chosen.insert(i));
     let mut drawn: Vec<usize> = chosen.into_iter().collect();
     drawn.sort_unstable();
     drawn
+}
+
+/// Floyd's draw of `count` of `0..n` (`count < n`) into a set: `insert(i)`
+/// adds `i` and says whether it was not there yet.
+fn floyd(n: usize, count: usize, seed: u64, mut insert: impl FnMut(usize) -> bool) {
+    let mut rng = SplitMix64::new(seed);
+    for j in n - count..n {
+        let t = ((rng.next_u64() as u128 * (j as u128 + 1)) >> 64) as usize; // uniform in 0..=j
+        if !insert(t) {
+            insert(j);
+        }
+    }
 }
 
 /// The median of `values` (the mean of the two middle ones for an even count;
@@ -620,6 +696,75 @@ mod tests {
             back_project(&nan_depth, &[true; 3], 3, &camera, 1.0).len(),
             1
         );
+    }
+
+    #[test]
+    fn a_draw_by_bits_is_the_draw_by_hashing() {
+        for (n, count, seed) in [
+            (20_000, 1_024, 1),
+            (1_025, 1_024, 3),
+            (64, 63, 0),
+            (100_000, 2_048, 7),
+            (5, 1, 2),
+        ] {
+            let mut hashed = HashSet::new();
+            floyd(n, count, seed, |i| hashed.insert(i));
+            let mut hashed: Vec<usize> = hashed.into_iter().collect();
+            hashed.sort_unstable();
+            assert_eq!(draw(n, count, seed), hashed, "{n} {count}");
+        }
+        // Far more indices than draws: hashed, same rule.
+        assert_eq!(draw(10_000_000, 3, 9).len(), 3);
+    }
+
+    #[test]
+    fn a_pixel_is_measured_and_within_bounds_as_its_point_says() {
+        let depths = [
+            0.0,
+            -1.0,
+            f64::NAN,
+            f64::INFINITY,
+            1e-320,
+            1e-300,
+            1e-12,
+            0.4,
+            1.0,
+            999.0,
+            1000.0,
+            1000.000001,
+            4.0e3,
+            1e300,
+            f64::MAX,
+        ];
+        for (fx, fy, cx, cy) in [
+            (500.0, 520.0, 3.5, 2.0),
+            (1e-200, 1e-300, 0.0, 1.0),
+            (1e300, 2.0, 1e10, -3.0),
+        ] {
+            for depth_scale in [1.0, 1000.0, 1e-300, 1e300, 3.0] {
+                let camera = Pinhole { fx, fy, cx, cy };
+                let area = MaskBox {
+                    top: 1,
+                    bottom: 4,
+                    left: 2,
+                    right: 9,
+                };
+                let lens = BoxLens::new(&camera, 16, &area, depth_scale);
+                for limit in [1000.0, 1.0, 1e-6, f64::INFINITY] {
+                    for u in 0..7 {
+                        for row in 0..3 {
+                            for d in depths {
+                                assert_eq!(
+                                    lens.measured_within(u, row, d, limit),
+                                    lens.point(u, row, d).map(|p| within(&p, limit)),
+                                    "u {u} row {row} d {d} scale {depth_scale} fx {fx} limit {limit}"
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]
