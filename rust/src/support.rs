@@ -186,21 +186,27 @@ fn ring_points<T: Copy + Into<f64>>(
 /// A `rows` × `cols` row-major grid of flags grown by a Euclidean disk of
 /// `radius` cells.
 fn dilate(flags: &[bool], rows: usize, cols: usize, radius: i64) -> Vec<bool> {
+    // The disk's half-width on each row offset: a run of cells per row.
+    let half: Vec<i64> = (-radius..=radius)
+        .map(|dr| {
+            (0..=radius)
+                .take_while(|dc| dr * dr + dc * dc <= radius * radius)
+                .count() as i64
+                - 1
+        })
+        .collect();
+    let (rows, cols) = (rows as i64, cols as i64);
     let mut out = vec![false; flags.len()];
-    for r in 0..rows as i64 {
-        for c in 0..cols as i64 {
-            if !flags[(r * cols as i64 + c) as usize] {
+    for r in 0..rows {
+        for c in 0..cols {
+            if !flags[(r * cols + c) as usize] {
                 continue;
             }
-            for dr in -radius..=radius {
-                for dc in -radius..=radius {
-                    let (rr, cc) = (r + dr, c + dc);
-                    if dr * dr + dc * dc <= radius * radius
-                        && (0..rows as i64).contains(&rr)
-                        && (0..cols as i64).contains(&cc)
-                    {
-                        out[(rr * cols as i64 + cc) as usize] = true;
-                    }
+            for (dr, &w) in (-radius..=radius).zip(&half) {
+                let rr = r + dr;
+                if (0..rows).contains(&rr) {
+                    let (from, to) = ((c - w).max(0), (c + w).min(cols - 1));
+                    out[(rr * cols + from) as usize..=(rr * cols + to) as usize].fill(true);
                 }
             }
         }
@@ -306,6 +312,23 @@ mod tests {
     };
     const WIDTH: usize = 160;
     const HEIGHT: usize = 120;
+
+    #[test]
+    fn dilation_sets_every_cell_within_the_disk_of_a_flag() {
+        let mut draws = SplitMix64::new(3);
+        for (rows, cols, radius) in [(9, 13, 3), (7, 5, 1), (4, 4, 0), (12, 3, 4), (1, 9, 2)] {
+            let flags: Vec<bool> = (0..rows * cols).map(|_| draws.next_f64() < 0.1).collect();
+            let grown = dilate(&flags, rows, cols, radius);
+            for (cell, &set) in grown.iter().enumerate() {
+                let (r, c) = ((cell / cols) as i64, (cell % cols) as i64);
+                let near = flags.iter().enumerate().any(|(other, &flag)| {
+                    let (dr, dc) = ((other / cols) as i64 - r, (other % cols) as i64 - c);
+                    flag && dr * dr + dc * dc <= radius * radius
+                });
+                assert_eq!(set, near, "{rows}x{cols} r {radius} cell {cell}");
+            }
+        }
+    }
 
     /// A ball of radius 5 cm resting on a table seen 45° from above, or
     /// (`in_front`) a wall 5 cm in front of the ball's centre hiding its
