@@ -1,9 +1,9 @@
 """What the confidence costs an estimate, with the flip rival handed to one
 of the Rust core's threads before the final ICP polish and found after the
-polish in the caller's thread (``EstimateSettings.flip_rival_beside_polish``
-on and off), in one process; or, with ``--setting coarse_icp_on_two_cores``,
+polish in the caller's thread (``EstimateSettings.refine.flip_rival_beside_polish``
+on and off), in one process; or, with ``--setting refine.coarse_icp_on_two_cores``,
 what splitting the first search's coarse ICPs between two cores saves; or,
-with ``--setting tie_polish_within``, what polishing near ties costs (its
+with ``--setting refine.tie_polish_within``, what polishing near ties costs (its
 default against 0, which turns it off).
 
     .venv/bin/python benches/bench_confidence_cost.py [--repeats 9] [--setting NAME] [--levels L1,L2]
@@ -67,11 +67,11 @@ LEVELS = "clean,visible40,spill5,occluded30_spill5"
 SEED_BASE = 777_900
 #: The settings that put work on a second core; each is compared on and off,
 #: and must give the same poses ...
-TWO_CORE_SETTINGS = ["flip_rival_beside_polish", "coarse_icp_on_two_cores"]
+TWO_CORE_SETTINGS = ["refine.flip_rival_beside_polish", "refine.coarse_icp_on_two_cores"]
 #: ... and those compared at their default ("on") and their "off" value.
 COMPARED_AGAINST = {
     **{name: (True, False) for name in TWO_CORE_SETTINGS},
-    "tie_polish_within": (DEFAULT_SETTINGS.tie_polish_within, 0.0),
+    "refine.tie_polish_within": (DEFAULT_SETTINGS.refine.tie_polish_within, 0.0),
 }
 
 
@@ -194,7 +194,7 @@ def main() -> None:
             for key, seconds in runs[mode].items():
                 per_view[mode].setdefault(key, []).append(float(np.median(seconds)))
         levels.append(level)
-        if args.setting == "flip_rival_beside_polish":
+        if args.setting == "refine.flip_rival_beside_polish":
             warm.append(warm_search(cloud, codebook, poses["off"], modes["off"]))
     print(f"{len(views)} views × {args.repeats} estimates per mode; medians over views, ms; {args.setting} on and off")
     print(f"{'':<18}" + "".join(f"{m:>10}" for m in modes))
@@ -211,9 +211,9 @@ def main() -> None:
         median, mean = np.median(paired[at]), np.mean(paired[at])
         print(f"  at {level}: median {median:+.3f} ms, mean {mean:+.3f} ms ({at.sum()} views)")
     print(f"  mean over views {np.mean(paired):+.3f} ms")
-    if args.setting == "tie_polish_within":
+    if args.setting == "refine.tie_polish_within":
         print(f"on: a near tie polished in {tied} of {len(views)} views; poses changed (on against off): {changed}")
-    if args.setting == "flip_rival_beside_polish":
+    if args.setting == "refine.flip_rival_beside_polish":
         own = {m: 1e3 * (np.array(per_view[m]["rival start"]) + np.array(per_view[m]["confidence"])) for m in modes}
         beside = 1e3 * (np.array(per_view["on"]["polish"]) - np.array(per_view["off"]["polish"]))
         print(

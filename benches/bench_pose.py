@@ -5,7 +5,7 @@ of the shared YCB meshes, at every stress level, in one process.
                                            [--stress clean,visible70,...] [--peer-views N]
                                            [--seed 0] [--occluders 0] [--out benches/RESULTS.md]
     .venv/bin/python benches/bench_pose.py --tune [...]          # tuning objects -> benches/TUNING.md
-    .venv/bin/python benches/bench_pose.py --tune --set pair_poses=0 --out /tmp/t/TUNING.md   # a setting tried
+    .venv/bin/python benches/bench_pose.py --tune --set second_search.pair_poses=0 --out /tmp/t/TUNING.md  # a setting
     .venv/bin/python benches/bench_pose.py --meshes DIR_OR_FILES [...]
 
 Methods: ``edgepose`` (picked up once ``edgepose.build_codebook`` and
@@ -58,7 +58,7 @@ from edgepose.eval.benchmark import MethodRun, ViewResult, load_object, summaris
 from edgepose.eval.benchmark import run_method as run_views
 from edgepose.eval.methods import METHODS, create_method
 from edgepose.eval.stress import STRESS_LEVELS
-from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
+from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, unknown_setting
 
 REPO = Path(__file__).resolve().parents[1]
 YCB = REPO.parent / "shared" / "data" / "ycb"
@@ -475,7 +475,8 @@ def settings_from(changes: list[str]) -> EstimateSettings:
     for change in changes:
         field_name, _, text = change.partition("=")
         if field_name not in fields or not text:
-            raise ValueError(f"--set {change!r}: expected FIELD=VALUE with FIELD one of {', '.join(fields)}")
+            why = f"{unknown_setting(field_name)}; " if field_name not in fields else ""
+            raise ValueError(f"--set {change!r}: {why}expected FIELD=VALUE with FIELD one of {', '.join(fields)}")
         kind = type(fields[field_name])
         try:
             if kind is bool:
@@ -702,7 +703,8 @@ def main() -> None:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="change an EstimateSettings field for the edgepose methods (repeatable; never for RESULTS.md)",
+        help="change an EstimateSettings field, a stage's by its dotted name (refine.icp_iterations=20), for the "
+        "edgepose methods (repeatable; never for RESULTS.md)",
     )
     args = parser.parse_args()
     try:

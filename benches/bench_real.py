@@ -59,7 +59,7 @@ def main() -> None:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="change an EstimateSettings field (repeatable; never for benches/REAL.md)",
+        help="change an EstimateSettings field, a stage's by its dotted name (repeatable; never for benches/REAL.md)",
     )
     args = parser.parse_args()
     settings = settings_from(args.set)

@@ -318,9 +318,9 @@ def test_the_flip_margin_prefers_the_true_pose_to_its_half_turns(drill):
     model = codebook.model
 
     def margin_and_fit_ratio(R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
-        observed = query.sample(S.hypothesis_points, S.subsample_seed)
+        observed = query.sample(S.refine.hypothesis_points, S.subsample_seed)
         scores = score_poses(
-            query, codebook, observed, R[None], t[None], S.hypothesis_inlier_distance * model.diameter, 0.0
+            query, codebook, observed, R[None], t[None], S.refine.hypothesis_inlier_distance * model.diameter, 0.0
         )
         flips = flip_margin(scores, flip_rival(query, codebook, R, t, S))
         assert flips.rival.fits.shape == (1,)
@@ -342,7 +342,7 @@ def test_a_pose_turned_onto_itself_gives_way_to_its_refined_rival(drill):
     """The drill seen whole, but the pose half turned about each principal
     axis (a near-symmetric object's usual mistake): its best turned rival,
     refined, is the truth and replaces it; the true pose keeps its place.
-    With the check off (``turn_check_below`` ≤ −1) a clean estimate is the same."""
+    With the check off (``turn.check_below`` ≤ −1) a clean estimate is the same."""
     from edgepose.settings import DEFAULT_SETTINGS as S
     from edgepose.stages import Refined, flip_margin, flip_rival, prepare_query, score_poses, turned_pose
     from edgepose.views import rotation_about
@@ -351,12 +351,12 @@ def test_a_pose_turned_onto_itself_gives_way_to_its_refined_rival(drill):
     view = render_view(mesh, seed=4)
     query = prepare_query(view.cloud, codebook)
     model = codebook.model
-    observed = query.sample(S.hypothesis_points, S.subsample_seed)
+    observed = query.sample(S.refine.hypothesis_points, S.subsample_seed)
 
     def searched(R: np.ndarray, t: np.ndarray):
         """A search's refined pose (R, t) and what turned_pose makes of it."""
         scores = score_poses(
-            query, codebook, observed, R[None], t[None], S.hypothesis_inlier_distance * model.diameter, 0.0
+            query, codebook, observed, R[None], t[None], S.refine.hypothesis_inlier_distance * model.diameter, 0.0
         )
         result = Refined(0, R, t, scores, True)
         return turned_pose(query, codebook, result, flip_margin(scores, flip_rival(query, codebook, R, t, S)), S)
@@ -368,10 +368,10 @@ def test_a_pose_turned_onto_itself_gives_way_to_its_refined_rival(drill):
     for a in axes.T:
         flip = rotation_about(a, np.pi)
         turned = searched(R @ flip, t + R @ centroid - R @ flip @ centroid)
-        assert turned is not None and turned.margin > S.turn_switch_gain
+        assert turned is not None and turned.margin > S.turn.switch_gain
         both = np.stack([R, turned.R]), np.stack([t, turned.t])
         assert codebook.index.pose_distances(*both, 0, False, 64)[1] < 0.02 * model.diameter
-    unchecked = edgepose.estimate(view.cloud, codebook, settings=S.with_(turn_check_below=-1.0))
+    unchecked = edgepose.estimate(view.cloud, codebook, settings=S.with_(**{"turn.check_below": -1.0}))
     pose = edgepose.estimate(view.cloud, codebook)
     assert np.array_equal(pose.matrix, unchecked.matrix) and "turned_pose" not in unchecked.timings
 

@@ -173,6 +173,6 @@ def test_segmentation_defaults_come_from_the_core_and_every_field_reaches_it():
     assert (changed.shadow_spacings, changed.ramp_neighbours, changed.steep_faces) == (1.5, 7, False)
     with pytest.raises(TypeError, match='no field "shadow"'):
         _core.SegmentSettings(shadow=1.0)
-    settings = edgepose.EstimateSettings().with_(**{"segmentation.shadow_spacings": 2.0}, k=8)
-    assert settings.segmentation.shadow_spacings == 2.0 and settings.k == 8
+    settings = edgepose.EstimateSettings().with_(**{"segmentation.shadow_spacings": 2.0, "retrieve.k": 8})
+    assert settings.segmentation.shadow_spacings == 2.0 and settings.retrieve.k == 8
     assert settings.flat()["segmentation.shadow_spacings"] == 2.0

@@ -126,7 +126,7 @@ def test_a_view_that_cannot_tell_a_pose_from_its_turn_offers_the_turn_as_an_alte
         found = [pose.matrix, *(a.matrix for a in pose.alternatives)]
         assert any(right(T, truth) for T in found) and any(right(T, truth @ half_turn) for T in found), seed
         margins = [a.margin for a in pose.alternatives]
-        assert margins == sorted(margins) and all(m <= edgepose.EstimateSettings().alternative_within for m in margins)
+        assert margins == sorted(margins) and all(m <= edgepose.EstimateSettings().alternatives.within for m in margins)
         # The confidence reads them: how many, and how close the best comes.
         assert pose.evidence["alternatives"] == len(margins) and pose.evidence["alternative_margin"] == margins[0]
         for i, T in enumerate(found):  # distinct from the pose and from each other
@@ -143,7 +143,7 @@ def test_a_view_that_cannot_tell_a_pose_from_its_turn_offers_the_turn_as_an_alte
     none = edgepose.estimate(
         render_view(mesh, T_cam_obj=looking_at(-1.0, 0), seed=0).cloud,
         codebook,
-        settings=edgepose.EstimateSettings(alternatives=0),
+        settings=edgepose.EstimateSettings(alternatives=edgepose.AlternativeSettings(max_count=0)),
     )
     assert none.alternatives == ()
 
@@ -168,7 +168,7 @@ def test_a_near_tie_between_rival_hypotheses_goes_to_the_lower_polished_rmse():
     the turn picked. Polishing both (the real ICP) tells them apart: the
     true pose wins, and its polish is handed on, the same as polishing it
     alone. No tie (the turn's RMSE well below), no polish
-    (``icp_iterations=0``) or ``tie_polish_within=0``: the pick stands,
+    (``refine.icp_iterations=0``) or ``refine.tie_polish_within=0``: the pick stands,
     unpolished."""
     from edgepose.settings import DEFAULT_SETTINGS as S
     from edgepose.stages import polish, tie_broken
@@ -197,8 +197,8 @@ def test_a_near_tie_between_rival_hypotheses_goes_to_the_lower_polished_rmse():
     for name in ("rotations", "translations", "inliers", "rmse"):
         np.testing.assert_array_equal(getattr(fine, name), getattr(alone, name))
     assert pick([1e-3, 0.5e-3]) == (1, None)
-    assert pick([1e-3, 1e-3], S.with_(tie_polish_within=0.0)) == (1, None)
-    assert pick([1e-3, 1e-3], S.with_(icp_iterations=0)) == (1, None)
+    assert pick([1e-3, 1e-3], S.with_(**{"refine.tie_polish_within": 0.0})) == (1, None)
+    assert pick([1e-3, 1e-3], S.with_(**{"refine.icp_iterations": 0})) == (1, None)
 
 
 def test_same_input_same_pose_and_saved_codebook_same_pose(drill, tmp_path):
@@ -305,15 +305,15 @@ def test_a_doubtful_pose_gets_a_second_wider_search_that_never_does_worse(drill)
     settings = edgepose.EstimateSettings()
     for seed in (3, 100):
         view = render_view(mesh, seed=seed)
-        first = edgepose.estimate(view.cloud, codebook, settings=settings.with_(pair_poses=0))
+        first = edgepose.estimate(view.cloud, codebook, settings=settings.with_(**{"second_search.pair_poses": 0}))
         # A bar no pose clears: every estimate is doubtful and searched again.
-        doubting = settings.with_(retry_below_inlier_fraction=1.01)
+        doubting = settings.with_(**{"second_search.retry_below_inlier_fraction": 1.01})
         both = edgepose.estimate(view.cloud, codebook, settings=doubting)
         assert first.searches == 1 and len(first.candidates) == 16
-        assert both.searches == 2 and 16 < len(both.candidates) <= 16 + settings.pair_poses
+        assert both.searches == 2 and 16 < len(both.candidates) <= 16 + settings.second_search.pair_poses
         assert "pair_poses" in both.timings and "pair_poses" not in first.timings
         np.testing.assert_array_equal(both.candidates[:16], first.candidates)  # the same ranking, extended
-        wider = edgepose.estimate(view.cloud, codebook, settings=doubting.with_(retry_k=48))
+        wider = edgepose.estimate(view.cloud, codebook, settings=doubting.with_(**{"second_search.retry_k": 48}))
         ranking = retrieve(prepare_query(view.cloud, codebook), codebook, default_encoder(), 48).views
         np.testing.assert_array_equal(wider.candidates[:48], ranking)  # 32 more views down the cosine ranking
         assert len(wider.candidates) == len(both.candidates) + 32
@@ -327,17 +327,21 @@ def test_a_pose_below_the_retry_confidence_is_searched_again(drill):
     mesh, codebook = drill
     view = render_view(mesh, seed=3)
     settings = edgepose.EstimateSettings()
-    trusted = edgepose.estimate(view.cloud, codebook, settings=settings.with_(retry_below_confidence=0.0))
+    trusted = edgepose.estimate(
+        view.cloud, codebook, settings=settings.with_(**{"second_search.retry_below_confidence": 0.0})
+    )
     assert trusted.searches == 1 and 0.0 < trusted.confidence < 1.0
     retried = edgepose.estimate(
-        view.cloud, codebook, settings=settings.with_(retry_below_confidence=trusted.confidence + 1e-9)
+        view.cloud,
+        codebook,
+        settings=settings.with_(**{"second_search.retry_below_confidence": trusted.confidence + 1e-9}),
     )
     assert retried.searches == 2 and "pair_poses" in retried.timings
     # The wider search keeps the first pose unless it explains more.
     assert net(retried) >= net(trusted) - 1e-12
     assert errors(retried, view, codebook).add < 0.1 * codebook.model.diameter
     default = edgepose.estimate(view.cloud, codebook)
-    assert default.searches == (2 if trusted.confidence < settings.retry_below_confidence else 1)
+    assert default.searches == (2 if trusted.confidence < settings.second_search.retry_below_confidence else 1)
 
 
 def test_doubt_is_a_pose_that_explains_too_few_points_or_violates_free_space(drill):
@@ -404,7 +408,7 @@ def test_the_depth_frame_exposes_a_pose_out_of_the_occluders_shadow(drill):
 
 def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill, monkeypatch):
     """The confidence's turned rival is handed to one of the Rust core's
-    threads before the polish (``flip_rival_beside_polish``, the default)
+    threads before the polish (``refine.flip_rival_beside_polish``, the default)
     or found after the polish in the caller's thread: the same poses,
     confidences and evidence, on whole and partly hidden views. The
     confidence uses stage 5's rival: it never looks for one of the refined
@@ -433,7 +437,9 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
         beside = edgepose.estimate(view.cloud, codebook, settings=settings)
         assert searches and all(searches), searches
         searches.clear()
-        after = edgepose.estimate(view.cloud, codebook, settings=settings.with_(flip_rival_beside_polish=False))
+        after = edgepose.estimate(
+            view.cloud, codebook, settings=settings.with_(**{"refine.flip_rival_beside_polish": False})
+        )
         assert searches and not any(searches), searches
         np.testing.assert_array_equal(beside.matrix, after.matrix)
         assert beside.confidence == after.confidence and beside.evidence == after.evidence
@@ -441,14 +447,16 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
 
 def test_coarse_icps_split_between_two_cores_give_the_same_poses(drill):
     """The first search's few coarse ICPs split between the caller's thread
-    and one of the core's (``coarse_icp_on_two_cores``, the default) or run
+    and one of the core's (``refine.coarse_icp_on_two_cores``, the default) or run
     one after another: the same poses, confidences and evidence."""
     mesh, codebook = drill
     settings = edgepose.EstimateSettings()
     for seed, occluders in [(4, 0), (12, 2), (22, 3)]:
         view = render_view(mesh, seed=seed, occluders=occluders)
         split = edgepose.estimate(view.cloud, codebook, settings=settings)
-        serial = edgepose.estimate(view.cloud, codebook, settings=settings.with_(coarse_icp_on_two_cores=False))
+        serial = edgepose.estimate(
+            view.cloud, codebook, settings=settings.with_(**{"refine.coarse_icp_on_two_cores": False})
+        )
         np.testing.assert_array_equal(split.matrix, serial.matrix)
         assert split.confidence == serial.confidence and split.evidence == serial.evidence
 
@@ -543,14 +551,16 @@ def test_the_free_space_tolerance_grows_with_the_sensor_noise_at_the_object_dept
     _, codebook = drill
     d = codebook.model.diameter
     settings = edgepose.EstimateSettings()
-    a, b, c = settings.depth_noise
+    a, b, c = settings.score.depth_noise
     near, far = (np.random.default_rng(0).normal(size=(500, 3)) * 0.03 + (0, 0, z) for z in (0.5, 1.5))
     q_near = prepare_query(near, codebook, settings)
     q_far = prepare_query(far, codebook, settings)
     # Close by, the fraction of the diameter rules; far away, three noise stds.
-    assert free_space_tolerance(q_near.median_depth, d, settings) == pytest.approx(settings.free_space_tolerance * d)
+    assert free_space_tolerance(q_near.median_depth, d, settings) == pytest.approx(
+        settings.score.free_space_tolerance * d
+    )
     sigma_far = a + b * (q_far.median_depth - c) ** 2
     assert free_space_tolerance(q_far.median_depth, d, settings) == pytest.approx(3.0 * sigma_far)
-    assert 3.0 * sigma_far > settings.free_space_tolerance * d
-    quiet = settings.with_(free_space_noise_sigmas=0.0)
-    assert free_space_tolerance(q_far.median_depth, d, quiet) == pytest.approx(settings.free_space_tolerance * d)
+    assert 3.0 * sigma_far > settings.score.free_space_tolerance * d
+    quiet = settings.with_(**{"score.free_space_noise_sigmas": 0.0})
+    assert free_space_tolerance(q_far.median_depth, d, quiet) == pytest.approx(settings.score.free_space_tolerance * d)

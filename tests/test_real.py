@@ -91,7 +91,7 @@ def test_a_right_pose_is_not_doubted_for_its_rim_on_real_depth(real):
         query = prepare_query(cloud, codebook, DEFAULT_SETTINGS, None)
         t = pose.t + pose.R @ codebook.model.centre  # mesh frame → model frame
         rims.append((pose.free_space_violation, rim_tolerant_violation(query, codebook, pose.R, t)))
-    limit = DEFAULT_SETTINGS.retry_above_free_space
+    limit = DEFAULT_SETTINGS.second_search.retry_above_free_space
     # The exact test reads a real silhouette's rim as a violation; one cell of slack at the edge does not.
     assert any(exact > limit for exact, _ in rims), rims
     assert all(rim <= min(exact, limit) for exact, rim in rims), rims

@@ -170,9 +170,9 @@ def test_point_pairs_find_a_mostly_hidden_object_that_the_view_codes_miss(drill)
     first_only, strongest_pair, both = 0, 0, 0
     for seed in (4, 5, 7, 8, 9, 10):
         view = render_scene(mesh, "visible40", seed=seed)
-        first_only += add(estimate_with(view, codebook, pair_poses=0), view) < 0.1 * d
+        first_only += add(estimate_with(view, codebook, **{"second_search.pair_poses": 0}), view) < 0.1 * d
         rotations, translations = pair_poses(prepare_query(view.cloud, codebook), codebook)
-        assert 1 <= len(rotations) <= edgepose.EstimateSettings().pair_poses
+        assert 1 <= len(rotations) <= edgepose.EstimateSettings().second_search.pair_poses
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = rotations[0], translations[0] - rotations[0] @ codebook.model.centre
         strongest_pair += add(T, view) < 0.1 * d
@@ -183,7 +183,7 @@ def test_point_pairs_find_a_mostly_hidden_object_that_the_view_codes_miss(drill)
 
 
 def estimate_with(view, codebook, **settings):
-    return edgepose.estimate(view.cloud, codebook, settings=edgepose.EstimateSettings(**settings)).matrix
+    return edgepose.estimate(view.cloud, codebook, settings=edgepose.EstimateSettings().with_(**settings)).matrix
 
 
 @pytest.mark.parametrize("level", ["on_table", "spill5", "partial", "visible40", "eroded3"])
@@ -226,7 +226,7 @@ def test_the_surface_search_ignores_points_without_a_pixel_and_refuses_a_bad_K()
 def test_a_table_the_object_stands_on_costs_no_second_search_given_the_frame(drill):
     # The drill on a table, the mask spilled onto it: without the support
     # plane most views keep table points and fail the first search's
-    # inlier test (retry_below_inlier_fraction), with it few do.
+    # inlier test (second_search.retry_below_inlier_fraction), with it few do.
     mesh, codebook = drill
     searches = {True: 0, False: 0}
     for seed in range(6):

@@ -81,7 +81,9 @@ def test_a_seen_handle_fixes_the_turn(mug):
 def test_turning_off_the_unseen_turn_keeps_the_search_alone(mug):
     mesh, codebook = mug
     cloud = render_view(mesh, T_cam_obj=_view(90.0), seed=1).cloud
-    off = edgepose.estimate(cloud, codebook, settings=edgepose.EstimateSettings(unseen_turn_alternatives=-1))
+    off = edgepose.estimate(
+        cloud, codebook, settings=edgepose.EstimateSettings().with_(**{"alternatives.unseen_turns": -1})
+    )
     on = edgepose.estimate(cloud, codebook)
     assert off.unseen_turn is None
     np.testing.assert_array_equal(off.matrix, on.matrix)  # the pose itself is the same

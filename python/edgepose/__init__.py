@@ -16,7 +16,16 @@ from edgepose.frame import FramePoses, estimate_many, track_many
 from edgepose.maps import Maps, compute_maps, farthest_point_sample, normalize_to_map, visible_mask
 from edgepose.model import StandardModel, detect_scale, load_model, model_from_points, read_mesh
 from edgepose.pose import Alternative, Pose, estimate
-from edgepose.settings import EstimateSettings, SegmentSettings
+from edgepose.settings import (
+    AlternativeSettings,
+    EstimateSettings,
+    RefineSettings,
+    RetrieveSettings,
+    ScoreSettings,
+    SecondSearchSettings,
+    SegmentSettings,
+    TurnSettings,
+)
 from edgepose.symmetry import Symmetry, detect_symmetry
 from edgepose.track import Tracker, TrackSettings
 from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
@@ -24,6 +33,7 @@ from edgepose.views import Viewpoints, fibonacci_viewpoints, view_rotation
 __all__ = [
     "__version__",
     "Alternative",
+    "AlternativeSettings",
     "Codebook",
     "CodebookError",
     "EdgePoseError",
@@ -32,11 +42,16 @@ __all__ = [
     "FramePoses",
     "ModelFilesError",
     "Pose",
+    "RefineSettings",
+    "RetrieveSettings",
+    "ScoreSettings",
+    "SecondSearchSettings",
     "SegmentSettings",
     "Symmetry",
     "TRUST_THRESHOLD",
     "TrackSettings",
     "Tracker",
+    "TurnSettings",
     "build_codebook",
     "cloud_from_depth",
     "estimate",

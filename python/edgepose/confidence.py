@@ -32,11 +32,12 @@ TRUST_THRESHOLD = 0.5
 STRICT_WRONG_ACCEPTED = 0.05
 
 #: The evidence, by name: what each term means. Fractions are of the observed
-#: points the hypotheses were scored on (``settings.hypothesis_points``), at
+#: points the hypotheses were scored on (``settings.refine.hypothesis_points``), at
 #: the pose; d is the object's diameter.
 FEATURES: dict[str, str] = {
-    "inlier_fraction": "share of observed points within hypothesis_inlier_distance (0.02 d) of the model, 0-1",
-    "loose_inlier_fraction": "share of observed points within doubt_inlier_distance (0.04 d) of the model, 0-1",
+    "inlier_fraction": "share of observed points within refine.hypothesis_inlier_distance (0.02 d) of the model, 0-1",
+    "loose_inlier_fraction": "share of observed points within second_search.doubt_inlier_distance (0.04 d) "
+    "of the model, 0-1",
     "fit": "mean observed-point distance to the model, each truncated at 0.02 d, over 0.02 d, 0-1",
     "free_space_violation": "share of the model's camera-facing points in front of what the camera saw, 0-1",
     "score": "cosine similarity of the chosen codebook view's code to the observed one, -1-1",
@@ -58,8 +59,8 @@ FEATURES: dict[str, str] = {
     "points: well below 1 when fine detail tells the pose from its turn, about 1 when nothing does; 0 when there "
     "is no rival",
     "alternatives": "how many other poses explain the view nearly as well (Pose.alternatives, at most "
-    "settings.alternatives): the search's hypotheses and the flip margin's turned rival within "
-    "alternative_within of the pose's net, more than 0.1 d from it and from each other",
+    "settings.alternatives.max_count): the search's hypotheses and the flip margin's turned rival within "
+    "alternatives.within of the pose's net, more than 0.1 d from it and from each other",
     "alternative_margin": "net of the pose minus that of its best alternative; 1 when there is none",
     "scene_violation": "share of the model's camera-facing points that land off the observed silhouette in front of "
     "the frame's depth there (the model would hide background the camera saw), 0-1; only with the depth image",

@@ -40,6 +40,11 @@ from edgepose.track import Tracker
 
 T = TypeVar("T")
 
+#: Objects searched in parallel already share the cores: each pose's coarse
+#: ICPs run one after another and its flip rival is found after its polish,
+#: not on another core beside them.
+ONE_CORE_EACH = {"refine.flip_rival_beside_polish": False, "refine.coarse_icp_on_two_cores": False}
+
 
 @dataclass(frozen=True, eq=False)
 class FramePoses:
@@ -107,12 +112,7 @@ def estimate_many(
         laps("prepare_query")
         return query, laps, None
 
-    # Objects searched in parallel already share the cores: each pose's
-    # coarse ICPs run one after another and its flip rival is found after
-    # its polish, not on another core beside them.
-    search_settings = (
-        settings.with_(flip_rival_beside_polish=False, coarse_icp_on_two_cores=False) if workers > 1 else settings
-    )
+    search_settings = settings.with_(**ONE_CORE_EACH) if workers > 1 else settings
     started = time.perf_counter()
     queries, laps, errors = zip(*_each(prepared, len(objects), workers)) if objects else ((), (), ())
     timings["queries"] = time.perf_counter() - started

@@ -41,7 +41,7 @@ class Alternative:
     """How much more of the view the estimate explains than this pose:
     inlier fraction minus free-space (and scene) violations, the estimate's
     minus this one's, on the same observed points; at most
-    ``settings.alternative_within``, below 0 when this one explains more."""
+    ``settings.alternatives.within``, below 0 when this one explains more."""
 
     @property
     def matrix(self) -> np.ndarray:
@@ -61,7 +61,7 @@ class Pose:
     """Cosine similarity of the chosen view's code to the observed one (1 is best)."""
     fit: float
     """Mean distance (metres) from the observed points to the model at this
-    pose, each truncated at the inlier distance (``settings.hypothesis_inlier_distance``
+    pose, each truncated at the inlier distance (``settings.refine.hypothesis_inlier_distance``
     × diameter when refined, else the candidates' looser one)."""
     view: int
     """Index of the chosen codebook viewpoint (for a pose voted for by
@@ -124,7 +124,7 @@ class Pose:
     side is hidden): look again from where they differ. They come from
     the search's coarse ICP, not the final polish (a few millimetres
     coarser). How many there are and how close the best comes are
-    evidence of ``confidence``. At most ``settings.alternatives``; none
+    evidence of ``confidence``. At most ``settings.alternatives.max_count``; none
     for a tracked frame or an unrefined pose (:func:`edgepose.stages.alternatives`)."""
     unseen_turn: UnseenTurn | None = None
     """When the view leaves open a turn about the object's near-symmetry
@@ -180,10 +180,15 @@ def estimate(
 
     ``settings`` holds every tuning value; ``k`` (codebook views verified) and
     ``icp_iterations`` (final ICP polish; 0: the hypotheses' coarse ICP only)
-    are shortcuts for its fields; ``refine=False`` skips ICP."""
+    are shortcuts for ``settings.retrieve.k`` and ``settings.refine.icp_iterations``;
+    ``refine=False`` skips ICP."""
     check_types(codebook=codebook, settings=settings)
     settings = settings.with_(
-        **{name: value for name, value in (("k", k), ("icp_iterations", icp_iterations)) if value is not None}
+        **{
+            name: value
+            for name, value in (("retrieve.k", k), ("refine.icp_iterations", icp_iterations))
+            if value is not None
+        }
     )
     encoder = encoder or default_encoder()
     check_estimate_inputs(codebook, encoder, settings)
@@ -197,17 +202,19 @@ def estimate(
 def check_estimate_inputs(codebook: Codebook, encoder: Encoder, settings: EstimateSettings) -> None:
     """``InvalidArgumentError`` for a ``codebook``, ``encoder`` or ``settings``
     of the wrong type; ``CodebookError`` if ``codebook`` was built by another
-    encoder; ``ValueError`` for ``settings.k`` or ``settings.icp_iterations`` out of range."""
+    encoder; ``ValueError`` for ``settings.retrieve.k`` or ``settings.refine.icp_iterations`` out of range."""
     check_types(codebook=codebook, encoder=encoder, settings=settings)
     if encoder.fingerprint != codebook.fingerprint:
         raise CodebookError(
             f"the codebook was built by encoder {codebook.fingerprint[:12]}…, a different encoder than the "
             f"one given ({encoder.fingerprint[:12]}…); rebuild the codebook with it"
         )
-    if not 1 <= settings.k <= len(codebook):
-        raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {settings.k}")
-    if not 0 <= settings.icp_iterations <= MAX_ICP_ITERATIONS:
-        raise ValueError(f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {settings.icp_iterations}")
+    if not 1 <= settings.retrieve.k <= len(codebook):
+        raise ValueError(f"k must be between 1 and the codebook's {len(codebook)} views, got {settings.retrieve.k}")
+    if not 0 <= settings.refine.icp_iterations <= MAX_ICP_ITERATIONS:
+        raise ValueError(
+            f"icp_iterations must be between 0 and {MAX_ICP_ITERATIONS}, got {settings.refine.icp_iterations}"
+        )
 
 
 def check_types(**arguments: object) -> None:
@@ -240,19 +247,19 @@ def pose_from_query(
     its map's code and spectrum, when already computed), as :func:`estimate`."""
     # One retrieval serves both searches: the second one's extra views (if
     # retry_k asks for any) are the next ones down the same ranking.
-    retry_k = min(settings.retry_k, len(codebook)) if refine else 0
-    retrieval = retrieve(query, codebook, encoder, max(settings.k, retry_k), encoded)
+    retry_k = min(settings.second_search.retry_k, len(codebook)) if refine else 0
+    retrieval = retrieve(query, codebook, encoder, max(settings.retrieve.k, retry_k), encoded)
     laps("retrieve")
     judge = encoder.judge(with_scene=query.scene is not None)
     search = Search(query, codebook, encoder, settings, laps, retrieval, judge)
-    may_retry = retry_k > settings.k or (settings.pair_poses if refine else 0) > 0
+    may_retry = retry_k > settings.retrieve.k or (settings.second_search.pair_poses if refine else 0) > 0
     found, result, loose, retry = first_search(search, refine, may_retry)
     laps("refine_hypotheses")
     first = None
     if not retry:
         first = Searched(found, result, result, loose, 1, judged(search, found, result, result, loose, 1))
         laps("confidence")
-        retry = may_retry and first.judgement.confidence < settings.retry_below_confidence
+        retry = may_retry and first.judgement.confidence < settings.second_search.retry_below_confidence
     searched = second_search(search, first, found, result, loose, refine, retry_k) if retry else first
     assert searched is not None  # judged once or twice above
     searched = turned_check(search, searched)

@@ -150,7 +150,7 @@ def scores_at(
     return score_poses(
         query,
         codebook,
-        query.sample(settings.hypothesis_points, settings.subsample_seed),
+        query.sample(settings.refine.hypothesis_points, settings.subsample_seed),
         result.R[None],
         result.t[None],
         inlier_distance * codebook.model.diameter,
@@ -162,8 +162,8 @@ def scores_at(
 def loose_scores(
     query: Query, codebook: Codebook, result: Refined, settings: EstimateSettings = DEFAULT_SETTINGS
 ) -> PoseScores:
-    """The pose's scores at the looser ``settings.doubt_inlier_distance``."""
-    return scores_at(query, codebook, result, settings.doubt_inlier_distance, settings)
+    """The pose's scores at the looser ``settings.second_search.doubt_inlier_distance``."""
+    return scores_at(query, codebook, result, settings.second_search.doubt_inlier_distance, settings)
 
 
 def doubtful(
@@ -175,22 +175,23 @@ def doubtful(
 ) -> bool:
     """Whether a search's pose (model frame → camera) is worth a second,
     wider search: not refined, or explaining too few of the hypotheses'
-    observed points within ``settings.doubt_inlier_distance``, or
+    observed points within ``settings.second_search.doubt_inlier_distance``, or
     contradicting free space even with a cell of slack at the silhouette's
     edge (:func:`rim_tolerant_violation`), or the scene (``loose``: its
     :func:`loose_scores`, if known).
     :func:`estimate` also searches again when the pose's confidence is below
-    ``settings.retry_below_confidence``."""
+    ``settings.second_search.retry_below_confidence``."""
     if not result.refined:
         return True
     scores = loose or loose_scores(query, codebook, result, settings)
     return bool(
-        scores.inlier_fraction[0] < settings.retry_below_inlier_fraction
-        or scores.scene_violation[0] > settings.retry_above_scene_violation
+        scores.inlier_fraction[0] < settings.second_search.retry_below_inlier_fraction
+        or scores.scene_violation[0] > settings.second_search.retry_above_scene_violation
         # The slack only lowers the violation: it is worked out only when it could matter.
         or (
-            scores.free_space_violation[0] > settings.retry_above_free_space
-            and rim_tolerant_violation(query, codebook, result.R, result.t, settings) > settings.retry_above_free_space
+            scores.free_space_violation[0] > settings.second_search.retry_above_free_space
+            and rim_tolerant_violation(query, codebook, result.R, result.t, settings)
+            > settings.second_search.retry_above_free_space
         )
     )
 
@@ -214,8 +215,8 @@ def scored(
         search.query.keypoints,
         rotations,
         translations,
-        settings.candidate_inlier_distance * codebook.model.diameter,
-        settings.candidate_free_space_weight,
+        settings.retrieve.candidate_inlier_distance * codebook.model.diameter,
+        settings.score.candidate_free_space_weight,
         settings,
     )
     search.laps("score_poses")
@@ -259,7 +260,7 @@ def judged(
     tight = (
         result.scores
         if result.refined
-        else scores_at(query, codebook, result, settings.hypothesis_inlier_distance, settings)
+        else scores_at(query, codebook, result, settings.refine.hypothesis_inlier_distance, settings)
     )
     if flips is None:
         rival = (
@@ -271,7 +272,7 @@ def judged(
     others = alternatives(codebook, result, searched.hypotheses, flips.rival, settings)
     d = codebook.model.diameter
     evidence = evidence_of(
-        FitEvidence.of(tight, loose, settings.hypothesis_inlier_distance * d, search.observed_extent),
+        FitEvidence.of(tight, loose, settings.refine.hypothesis_inlier_distance * d, search.observed_extent),
         SearchEvidence(
             score=found.similarity[result.candidate],
             searched_twice=searches > 1,
@@ -304,11 +305,11 @@ class Searched(NamedTuple):
 
 
 def first_search(search: Search, refine: bool, may_retry: bool) -> tuple[Candidates, Refined, PoseScores, bool]:
-    """Stages 3–5 on the first ``settings.k`` retrieved views: the candidates,
+    """Stages 3–5 on the first ``settings.retrieve.k`` retrieved views: the candidates,
     the best pose, its loose scores, and whether it is doubtful (when a
     second search ``may_retry``)."""
     settings = search.settings
-    found = posed(search, 0, settings.k)
+    found = posed(search, 0, settings.retrieve.k)
     result = best_pose(search.query, search.codebook, found, refine, settings, search.icp_cache)
     loose = loose_scores(search.query, search.codebook, result, settings)
     # A doubtful pose is searched again whatever its confidence: that is judged after.
@@ -325,20 +326,20 @@ def second_search(
     retry_k: int,
 ) -> Searched:
     """The second, wider search (``retry_k`` views down the ranking, the
-    point pairs' poses, ``settings.retry_hypotheses`` hypotheses) after the
+    point pairs' poses, ``settings.second_search.retry_hypotheses`` hypotheses) after the
     first one's pose ``result`` (``first``: it judged, if it was); the
     first pose is kept unless the wider one explains more."""
     settings = search.settings
-    if retry_k > settings.k:
-        found = found.extended(posed(search, settings.k, retry_k))
-    if settings.pair_poses if refine else 0:
+    if retry_k > settings.retrieve.k:
+        found = found.extended(posed(search, settings.retrieve.k, retry_k))
+    if settings.second_search.pair_poses if refine else 0:
         found = found.extended(paired(search))
     wider = best_pose(
         search.query,
         search.codebook,
         found,
         refine,
-        settings.with_(hypotheses=settings.retry_hypotheses),
+        settings.with_(**{"refine.hypotheses": settings.second_search.retry_hypotheses}),
         search.icp_cache,
     )
     flips = first.judgement.flips if first is not None else None
@@ -353,7 +354,7 @@ def second_search(
 def turned_check(search: Search, searched: Searched) -> Searched:
     """When the flip margin is low, the pose's best turned rival, refined
     (:func:`edgepose.stages.turned_pose`), replaces it if it explains the view better."""
-    if searched.judgement.flips.margin >= search.settings.turn_check_below:
+    if searched.judgement.flips.margin >= search.settings.turn.check_below:
         return searched
     turned = turned_pose(search.query, search.codebook, searched.result, searched.judgement.flips, search.settings)
     if turned is not None:

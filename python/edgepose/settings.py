@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import functools
 import os
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields, is_dataclass, replace
 from typing import Any
 
 from edgepose import _core
@@ -94,34 +94,13 @@ def _core_segment(settings: SegmentSettings) -> _core.SegmentSettings:
 
 
 @dataclass(frozen=True)
-class EstimateSettings:
-    """Tuning of :func:`edgepose.estimate`. Tuned on training shapes and
-    seeds disjoint from the reported benchmark
-    (``benches/bench_pose.py --tune`` writes their figures to ``benches/TUNING.md``).
-    The evidence for each default is in ``docs/tuning.md``."""
+class RetrieveSettings:
+    """Tuning of stages 2 and 3 (:mod:`edgepose.stages.retrieval`): the
+    codebook views most similar to the query's map, posed as candidates and
+    verified on the query's keypoints."""
 
-    # --- prepare the query
-    max_cloud_points: int = 2048
-    """Larger clouds are subsampled (seeded) first: bounded time and memory;
-    2,048 points cover an object densely for a 512-point map."""
-    segment: bool = True
-    """Drop statistical outliers and components split off by depth jumps
-    (background a spilled mask picked up, flying pixels) before anything else."""
-    segmentation: SegmentSettings = SegmentSettings()
-    """How stage 1 tells the object's points from spill and flying pixels
-    (with ``segment`` on): :class:`SegmentSettings`."""
-    support_plane: bool = True
-    """Given the depth frame (``estimate``, ``estimate_many``, a
-    ``Tracker``'s frames): drop the cloud's points on the surface the
-    object stands on or in front of (a table, a wall), found around the
-    mask (:func:`edgepose.stages.on_support_plane`). On by default: spill
-    onto a table that meets the object crosses no depth jump, so
-    segmentation keeps it and the pose then explains fewer of its points (a
-    second search, a lower confidence; README, "On a table")."""
     keypoints: int = 32
     """Observed keypoints (the map's first farthest-point samples) that verify candidates."""
-
-    # --- retrieve and verify candidates
     k: int = 16
     """Codebook views retrieved by cosine similarity and verified."""
     align_iterations: int = 3
@@ -132,6 +111,13 @@ class EstimateSettings:
     """× d. A keypoint this close to a candidate's model is an inlier; farther
     ones cost this much (truncated). Candidates are only as good as the
     2,100-view grid and the in-plane angle, so this is loose."""
+
+
+@dataclass(frozen=True)
+class ScoreSettings:
+    """Tuning of stage 4 (:mod:`edgepose.stages.scoring`): the free-space
+    test every pose is scored by, and how candidates are ranked."""
+
     free_space_tolerance: float = 0.03
     """× d. A camera-facing model point this far in front of the observed
     depth on its ray contradicts the view (free-space violation) ..."""
@@ -150,7 +136,13 @@ class EstimateSettings:
     free_space_model_stride: int = 4
     """Every n-th of the codebook's model points takes part in the free-space test."""
 
-    # --- refine hypotheses
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """Tuning of stage 5 (:mod:`edgepose.stages.refine`): coarse ICP of the
+    best distinct candidates (the hypotheses), the pick among them, and the
+    final ICP polish of the winner."""
+
     hypotheses: int = 3
     """Distinct candidate poses refined by a coarse ICP; the best-scoring one
     wins. A near-symmetric object verifies almost equally well either way up;
@@ -179,13 +171,54 @@ class EstimateSettings:
     0: never (the cheaper, less robust search). Default: the coarse ICP's
     256 points decide such near ties by noise on a small fragment; 0.1 got
     more poses right than 0.05, as many as 0.2, for a fraction of a ms."""
-    # --- a second, wider search when the first pose is doubtful
+    max_centre_offset: float = 1.25
+    """× the model's radius (its farthest point from its centre). Every
+    observed point of the object lies within one radius of the model's
+    centre, so a refined pose whose centre is farther from the observed
+    centroid than this (ICP drifting off, onto background) is not used."""
+    icp_points: int = 1024
+    """Observed points used by the final ICP polish of the winner."""
+    icp_iterations: int = 12
+    """Iterations of the final ICP polish (0: the coarse ICP result only).
+    Default: most polishes converge in 3–7; 12 got as many poses right as
+    20, for less time."""
+    icp_max_distance: float = 0.1
+    """× d. ICP ignores pairs farther apart than this."""
+    min_icp_inliers: int = 16
+    """An ICP result with fewer inlier pairs is not trusted."""
+    coarse_icp_on_two_cores: bool = True
+    """Split the coarse ICPs of a search's new hypotheses, when there are
+    2 or 3 (the first search's; the second search's starts not already
+    refined by the first), between the caller's thread and one of the Rust
+    core's (4 or more run on all the core's threads anyway; the caller
+    runs the core's half itself if no thread has started it when its own
+    half is done, ``rust/src/threads.rs``, ``hand_over``): the same
+    poses, sooner where a second core is free. :func:`edgepose.estimate_many`,
+    when its objects share the cores on several threads, runs them one
+    after another."""
+    flip_rival_beside_polish: bool = True
+    """Hand the search for the confidence's turned rival of the pose (its
+    flip margin's, :func:`edgepose.stages.flip_rival`) to one of the Rust
+    core's threads before ICP polishes the pose in the caller's, instead of
+    searching after the polish: the same rival either way (it starts from
+    the pose before the polish), sooner where a second core is free. The
+    caller takes the search back and runs it itself if no thread has
+    started it when the confidence asks (``rust/src/threads.rs``,
+    ``hand_over``). :func:`edgepose.estimate_many`, when its objects share
+    the cores on several threads, searches after."""
+
+
+@dataclass(frozen=True)
+class SecondSearchSettings:
+    """When a first pose is doubtful (:func:`edgepose.search.doubtful`) and
+    how the second, wider search then goes (:func:`edgepose.search.second_search`)."""
+
     retry_below_inlier_fraction: float = 0.95
     """A refined pose explaining fewer of the observed points than this
     fraction (0–1) within ``doubt_inlier_distance`` is doubtful. Default:
     correct poses rarely fall below it, wrong ones mostly do ..."""
     doubt_inlier_distance: float = 0.04
-    """× d. Default: looser than ``hypothesis_inlier_distance``, so that
+    """× d. Default: looser than ``refine.hypothesis_inlier_distance``, so that
     depth noise at range (σ 3 mm at 1.5 m) does not make a correct pose doubtful."""
     retry_above_free_space: float = 0.03
     """... as is one violating free space (a fraction 0–1 of its
@@ -220,85 +253,120 @@ class EstimateSettings:
     keeps the voting to a few ms."""
     retry_k: int = 0
     """Candidates down the cosine ranking that join the second search (0
-    or ≤ ``k``: none). Default: with ``pair_poses``, more cosine candidates
+    or ≤ ``retrieve.k``: none). Default: with ``pair_poses``, more cosine candidates
     add nothing and cost time per doubtful view."""
     retry_hypotheses: int = 6
-    """Hypotheses refined by the second search. Default: as many poses right
-    as 8, for less time (5 got fewer right than 8)."""
-    max_centre_offset: float = 1.25
-    """× the model's radius (its farthest point from its centre). Every
-    observed point of the object lies within one radius of the model's
-    centre, so a refined pose whose centre is farther from the observed
-    centroid than this (ICP drifting off, onto background) is not used."""
-    icp_points: int = 1024
-    """Observed points used by the final ICP polish of the winner."""
-    icp_iterations: int = 12
-    """Iterations of the final ICP polish (0: the coarse ICP result only).
-    Default: most polishes converge in 3–7; 12 got as many poses right as
-    20, for less time."""
-    icp_max_distance: float = 0.1
-    """× d. ICP ignores pairs farther apart than this."""
-    turn_check_below: float = 0.05
+    """Hypotheses refined by the second search (its ``refine.hypotheses``).
+    Default: as many poses right as 8, for less time (5 got fewer right than 8)."""
+
+
+@dataclass(frozen=True)
+class TurnSettings:
+    """The turned-pose check (:func:`edgepose.stages.turned_pose`): a pose's
+    best turned rival replaces it when it explains the view better."""
+
+    check_below: float = 0.05
     """A pose whose flip margin (``Pose.evidence["flip_margin"]``: how much
     better it explains the view than itself turned onto itself, the
     near-symmetric object's usual mistake) is below this has its best
     turned rival refined as the pose was (coarse ICP, then the polish) ...
     (any value ≤ −1: never)."""
-    turn_switch_gain: float = 0.02
+    switch_gain: float = 0.02
     """... and the pose is that rival instead when it explains this much
     more of the view (inlier fraction minus violations, 0–1). Default: on
     near-symmetric training parts it turned many more wrong poses right
     than right ones wrong (0 nearly as many each way, 0.05 few)."""
-    alternatives: int = 3
-    """``Pose.alternatives``: at most this many other poses that explain the
-    view nearly as well (0: none looked for) ..."""
-    alternative_within: float = 0.05
+
+
+@dataclass(frozen=True)
+class AlternativeSettings:
+    """``Pose.alternatives`` (:func:`edgepose.stages.alternatives`,
+    :mod:`edgepose.unseen_turn`): other poses that explain the view nearly as well."""
+
+    max_count: int = 3
+    """At most this many other poses that explain the view nearly as well
+    (0: none looked for) ..."""
+    within: float = 0.05
     """... within this much of the pose's share of explained points net of
     violations (inlier fraction minus free-space and scene violations).
     Their count and the best one's margin are evidence of
     ``Pose.confidence``, whose model was fitted with these two values.
-    Default: ``hypothesis_free_space_margin``; it caught the truth as often
+    Default: ``refine.hypothesis_free_space_margin``; it caught the truth as often
     as 0.03, and 0.1 gave many more right occluded poses alternatives."""
-    unseen_turn_alternatives: int = 8
+    unseen_turns: int = 8
     """When the object has a near-symmetry axis (a mug's body) and the view
     leaves the turn about it open (the handle unseen): at most this many
     of those turns join ``Pose.alternatives``, spread over what the view
     allows (-1: the turn is not looked for; :mod:`edgepose.unseen_turn`).
     Enough to span a half circle at the 0.1 × diameter spacing of a mug."""
-    coarse_icp_on_two_cores: bool = True
-    """Split the coarse ICPs of a search's new hypotheses, when there are
-    2 or 3 (the first search's; the second search's starts not already
-    refined by the first), between the caller's thread and one of the Rust
-    core's (4 or more run on all the core's threads anyway; the caller
-    runs the core's half itself if no thread has started it when its own
-    half is done, ``rust/src/threads.rs``, ``hand_over``): the same
-    poses, sooner where a second core is free. :func:`edgepose.estimate_many`,
-    when its objects share the cores on several threads, runs them one
-    after another."""
-    flip_rival_beside_polish: bool = True
-    """Hand the search for the confidence's turned rival of the pose (its
-    flip margin's, :func:`edgepose.stages.flip_rival`) to one of the Rust
-    core's threads before ICP polishes the pose in the caller's, instead of
-    searching after the polish: the same rival either way (it starts from
-    the pose before the polish), sooner where a second core is free. The
-    caller takes the search back and runs it itself if no thread has
-    started it when the confidence asks (``rust/src/threads.rs``,
-    ``hand_over``). :func:`edgepose.estimate_many`, when its objects share
-    the cores on several threads, searches after."""
-    min_icp_inliers: int = 16
-    """An ICP result with fewer inlier pairs is not trusted."""
+
+
+@dataclass(frozen=True)
+class EstimateSettings:
+    """Tuning of :func:`edgepose.estimate`, nested by stage: a stage's
+    settings are one frozen dataclass (``settings.refine.icp_iterations``;
+    ``with_(**{"refine.icp_iterations": 20})``). Tuned on training shapes and
+    seeds disjoint from the reported benchmark
+    (``benches/bench_pose.py --tune`` writes their figures to ``benches/TUNING.md``).
+    The evidence for each default is in ``docs/tuning.md``."""
+
+    # --- prepare the query (stage 1)
+    max_cloud_points: int = 2048
+    """Larger clouds are subsampled (seeded) first: bounded time and memory;
+    2,048 points cover an object densely for a 512-point map."""
+    segment: bool = True
+    """Drop statistical outliers and components split off by depth jumps
+    (background a spilled mask picked up, flying pixels) before anything else."""
+    segmentation: SegmentSettings = SegmentSettings()
+    """How stage 1 tells the object's points from spill and flying pixels
+    (with ``segment`` on): :class:`SegmentSettings`."""
+    support_plane: bool = True
+    """Given the depth frame (``estimate``, ``estimate_many``, a
+    ``Tracker``'s frames): drop the cloud's points on the surface the
+    object stands on or in front of (a table, a wall), found around the
+    mask (:func:`edgepose.stages.on_support_plane`). On by default: spill
+    onto a table that meets the object crosses no depth jump, so
+    segmentation keeps it and the pose then explains fewer of its points (a
+    second search, a lower confidence; README, "On a table")."""
     subsample_seed: int = 1
-    """Seed of the (deterministic) subsampling of the cloud for ICP."""
+    """Seed of the (deterministic) subsampling of the cloud for ICP (the
+    hypotheses' points, the polish's, the confidence's and the tracker's)."""
+
+    # --- the stages after it
+    retrieve: RetrieveSettings = RetrieveSettings()
+    """Stages 2 and 3, retrieve and verify candidates: :class:`RetrieveSettings`."""
+    score: ScoreSettings = ScoreSettings()
+    """Stage 4, score poses: :class:`ScoreSettings`."""
+    refine: RefineSettings = RefineSettings()
+    """Stage 5, refine hypotheses: :class:`RefineSettings`."""
+    second_search: SecondSearchSettings = SecondSearchSettings()
+    """A second, wider search when the first pose is doubtful: :class:`SecondSearchSettings`."""
+    turn: TurnSettings = TurnSettings()
+    """The turned pose, when the flip margin is low: :class:`TurnSettings`."""
+    alternatives: AlternativeSettings = AlternativeSettings()
+    """``Pose.alternatives``: :class:`AlternativeSettings`."""
+
+    def __post_init__(self) -> None:
+        for name, stage in _STAGES.items():
+            value = getattr(self, name)
+            if not isinstance(value, stage):
+                moved = f" (the old {name}={value!r:.20} is now {_RENAMED[name]!r})" if name in _RENAMED else ""
+                raise TypeError(f"{name} must be an edgepose.{stage.__name__}, got {value!r:.80}{moved}")
 
     def with_(self, **changes: Any) -> EstimateSettings:
         """A copy with some fields changed; a stage's field by its dotted
-        name: ``with_(**{"segmentation.shadow_spacings": 1.0})``."""
+        name: ``with_(**{"refine.icp_iterations": 20})``. ``TypeError``
+        naming a name that is no setting (and, for a name from before the
+        settings were nested, the dotted name it is now)."""
         nested: dict[str, dict[str, Any]] = {}
-        for name in [n for n in changes if "." in n]:
-            stage, _, field_name = name.partition(".")
-            nested.setdefault(stage, {})[field_name] = changes.pop(name)
+        for name in list(changes):
+            if name not in _NAMES:
+                raise TypeError(unknown_setting(name))
+            stage, dot, field_name = name.partition(".")
+            if dot:
+                nested.setdefault(stage, {})[field_name] = changes.pop(name)
         for stage, stage_changes in nested.items():
-            changes[stage] = replace(getattr(self, stage), **stage_changes)
+            changes[stage] = replace(changes.get(stage, getattr(self, stage)), **stage_changes)
         return replace(self, **changes)
 
     def as_dict(self) -> dict[str, object]:
@@ -307,17 +375,46 @@ class EstimateSettings:
 
     def flat(self) -> dict[str, object]:
         """Every field and its value, a stage's fields by their dotted names
-        (``segmentation.shadow_spacings``): what :meth:`with_` takes."""
+        (``refine.icp_iterations``): what :meth:`with_` takes."""
         out: dict[str, object] = {}
         for f in fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, SegmentSettings):
-                out.update({f"{f.name}.{k}": v for k, v in asdict(value).items()})
+            if f.name in _STAGES:
+                out.update({f"{f.name}.{g.name}": getattr(value, g.name) for g in fields(value)})
             else:
                 out[f.name] = value
         return out
 
 
+#: The stages: every field of :class:`EstimateSettings` that is itself a
+#: dataclass, by name, and its class.
+_STAGES: dict[str, type] = {f.name: type(f.default) for f in fields(EstimateSettings) if is_dataclass(f.default)}
+
+#: Fields that lost a prefix or suffix repeating their stage's name when the
+#: settings were nested by stage (the others kept theirs): old flat name → dotted name.
+_RENAMED = {
+    "alternatives": "alternatives.max_count",
+    "alternative_within": "alternatives.within",
+    "unseen_turn_alternatives": "alternatives.unseen_turns",
+    "turn_check_below": "turn.check_below",
+    "turn_switch_gain": "turn.switch_gain",
+}
+
 DEFAULT_SETTINGS = EstimateSettings()
+
+#: Every name :meth:`EstimateSettings.with_` takes: the fields, a stage's fields dotted.
+_NAMES = frozenset([*(f.name for f in fields(EstimateSettings)), *DEFAULT_SETTINGS.flat()])
+
+
+def unknown_setting(name: str) -> str:
+    """Why ``name`` is no setting of :class:`EstimateSettings`: where it is
+    now if it was a flat one before the settings were nested by stage (or is
+    a stage's field named without its stage)."""
+    dotted = _RENAMED.get(name) or next((n for n in DEFAULT_SETTINGS.flat() if n.partition(".")[2] == name), None)
+    if dotted is not None:
+        return f"no setting {name!r}: it is {dotted!r} (settings are nested by stage)"
+    return f"no setting {name!r} (EstimateSettings().flat() names every one)"
+
+
 #: ICP converges in tens of iterations; more is a caller's mistake, not a wish.
 MAX_ICP_ITERATIONS = 1000

@@ -248,7 +248,7 @@ class Tracker:
         R, t = icp.rotations[0], icp.translations[0]
         if not (
             np.isfinite(icp.rmse[0])
-            and icp.inliers[0] >= settings.min_icp_inliers
+            and icp.inliers[0] >= settings.refine.min_icp_inliers
             and scores.inlier_fraction[0] >= track.min_inlier_fraction
             and scores.free_space_violation[0] <= track.max_free_space_violation
             and (not fit.with_scene or scores.scene_violation[0] <= track.max_scene_violation)
@@ -258,7 +258,7 @@ class Tracker:
         # What tracking does not recompute (the retrieval's score, how far the
         # pose stood out from its rivals) is carried from the estimate that started the track.
         evidence = evidence_of(
-            FitEvidence.of(tight, scores, settings.hypothesis_inlier_distance * d, math.hypot(*fit.sides) / d),
+            FitEvidence.of(tight, scores, settings.refine.hypothesis_inlier_distance * d, math.hypot(*fit.sides) / d),
             SearchEvidence.carried(last.evidence, last.score),
         )
         judge = self.encoder.judge(with_scene=fit.with_scene)
@@ -316,8 +316,8 @@ def _frame_settings(track: TrackSettings, settings: EstimateSettings, diameter: 
         icp_iterations=track.icp_iterations,
         icp_max_distance=track.icp_max_distance * diameter,
         inlier_distance=track.inlier_distance * diameter,
-        tight_inlier_distance=settings.hypothesis_inlier_distance * diameter,
-        model_stride=settings.free_space_model_stride,
+        tight_inlier_distance=settings.refine.hypothesis_inlier_distance * diameter,
+        model_stride=settings.score.free_space_model_stride,
         diameter=diameter,
         scene_radius=SceneDepth.radius,
         scene_margin=SCENE_MARGIN,

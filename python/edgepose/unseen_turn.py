@@ -10,7 +10,7 @@ turns about one axis mean most of the surface is a body of revolution
 about it. :func:`unseen_turn` tries the pose turned about that axis on a
 grid of angles, keeps the turns that explain the observed points nearly as
 well as the pose (inlier share net of free-space and scene violations,
-within ``settings.alternative_within``) and reports them: which of them
+within ``settings.alternatives.within``) and reports them: which of them
 are too far from the pose to be right if it is (ADD > 0.1 × diameter), a
 spread of those as alternatives, and the share of the explaining turns
 that the pose stands for. Views that show the handle rule out all but the
@@ -131,7 +131,7 @@ def unseen_turn(
 ) -> tuple[UnseenTurn, np.ndarray, np.ndarray, np.ndarray] | None:
     """The turns of pose ``(R, t)`` (model frame → camera) about the
     object's near-symmetry axis that explain the view within
-    ``settings.alternative_within`` of the pose (``net_of(rotations,
+    ``settings.alternatives.within`` of the pose (``net_of(rotations,
     translations)``: each pose's inlier share net of violations on the
     hypotheses' observed points), when some of them are more than
     0.1 × diameter from the pose; with the turned poses to offer as
@@ -140,20 +140,20 @@ def unseen_turn(
     first). None when the object has no such axis or the view fixes the
     turn (neither turn :data:`SCREEN_DEG` beside the pose explains it)."""
     axis = near_axis(codebook.symmetry)
-    if axis is None or settings.unseen_turn_alternatives < 0:
+    if axis is None or settings.alternatives.unseen_turns < 0:
         return None
     # A view that fixes the turn rules out the turns beside the pose: a
     # cheap screen of those two spares most such views the full circle.
     beside = np.array([0.0, SCREEN_DEG, -SCREEN_DEG])
     screened = net_of(*turned_about(R, t, axis, codebook.model.centre, beside))
-    if not (screened[1:] >= screened[0] - settings.alternative_within).any():
+    if not (screened[1:] >= screened[0] - settings.alternatives.within).any():
         return None
     angles = np.arange(0.0, 360.0, STEP_DEG)
     angles = np.where(angles > 180.0, angles - 360.0, angles)
     rotations, translations = turned_about(R, t, axis, codebook.model.centre, angles)
     net = net_of(rotations, translations)
     # Only the turns that explain the view matter from here (the pose, at 0°, first).
-    explains = net >= net[0] - settings.alternative_within
+    explains = net >= net[0] - settings.alternatives.within
     angles, rotations, translations, net = angles[explains], rotations[explains], translations[explains], net[explains]
     limit = RIGHT_WITHIN * codebook.model.diameter
     # ADD from the pose (ADD-S for a symmetric object: a turn onto a symmetry is the pose).
@@ -170,7 +170,7 @@ def unseen_turn(
             if direction * angles[i] > 0 and apart[i]:
                 picked.append(int(i))
                 apart = pose_distances(codebook, rotations, translations, int(i)) >= limit
-    picked = sorted(sorted(set(picked)), key=lambda i: -net[i])[: settings.unseen_turn_alternatives]
+    picked = sorted(sorted(set(picked)), key=lambda i: -net[i])[: settings.alternatives.unseen_turns]
     return found, rotations[picked], translations[picked], net[picked]
 
 
@@ -189,11 +189,11 @@ def view_left_open(
     share of them the pose stands for."""
     if not result.refined:
         return None, others, confidence
-    observed = query.sample(settings.hypothesis_points, settings.subsample_seed)
+    observed = query.sample(settings.refine.hypothesis_points, settings.subsample_seed)
     d = codebook.model.diameter
 
     def net_of(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-        inlier = settings.hypothesis_inlier_distance * d
+        inlier = settings.refine.hypothesis_inlier_distance * d
         return score_poses(query, codebook, observed, rotations, translations, inlier, 0.0, settings).net
 
     found = unseen_turn(codebook, net_of, result.R, result.t, settings)

@@ -55,8 +55,8 @@ def build(
     from edgepose.report import build_summary, build_table, progress
 
     with handle_errors():
-        if views < DEFAULT_SETTINGS.k:  # estimate verifies k codebook views
-            raise Failure(f"--views must be at least {DEFAULT_SETTINGS.k}, got {views}")
+        if views < DEFAULT_SETTINGS.retrieve.k:  # estimate verifies k codebook views
+            raise Failure(f"--views must be at least {DEFAULT_SETTINGS.retrieve.k}, got {views}")
         files = find_meshes(meshes)
         executor = executor_for(ray or ray_address is not None, ray_address, cpus_per_task)
     started = time.perf_counter()

@@ -129,7 +129,7 @@ def estimate(
     ] = None,
     depth_scale: DepthScaleOption = DEPTH_SCALE_MM,
     refine: Annotated[bool, typer.Option(help="Refine with point-to-plane ICP.")] = True,
-    k: Annotated[int, typer.Option(help="Candidate viewpoints verified.")] = DEFAULT_SETTINGS.k,
+    k: Annotated[int, typer.Option(help="Candidate viewpoints verified.")] = DEFAULT_SETTINGS.retrieve.k,
     truth: Annotated[
         Path | None, typer.Option(help="True T_cam_obj (JSON 4×4 / BOP gt entry, or .npy) to report the errors.")
     ] = None,

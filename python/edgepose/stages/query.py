@@ -196,7 +196,7 @@ def query_of_cleaned(
         model.diameter,
         model.scale,
         codebook.map_points,
-        settings.keypoints,
+        settings.retrieve.keypoints,
         MIN_POINTS,
         settings.segmentation.core() if settings.segment else None,
     )

@@ -68,32 +68,36 @@ def turned_pose(
 ) -> Refined | None:
     """``result``'s best turned rival (``flips``), refined as a hypothesis
     is (coarse ICP, then the polish), when it explains more of the view
-    (inlier fraction minus violations) by ``settings.turn_switch_gain``;
+    (inlier fraction minus violations) by ``settings.turn.switch_gain``;
     None otherwise, and for a pose ICP did not refine. Its ``margin`` is
     that gain over ``result``, its ``rmse_ratio`` the search's.
     :func:`edgepose.estimate` asks when the flip margin is below
-    ``settings.turn_check_below``."""
+    ``settings.turn.check_below``."""
     if not result.refined or len(flips.rival.rotations) == 0:
         return None
     d = codebook.model.diameter
-    coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
+    coarse = query.sample(settings.refine.hypothesis_points, settings.subsample_seed)
     icp = codebook.index.refine(
         coarse,
         flips.rival.rotations,
         flips.rival.translations,
-        settings.hypothesis_iterations,
-        settings.icp_max_distance * d,
+        settings.refine.hypothesis_iterations,
+        settings.refine.icp_max_distance * d,
     )
     rival: RivalSearch | None = None  # unpolished: the flip margin's rival is found from the pose itself
-    if settings.icp_iterations > 0 and icp.inliers[0] >= settings.min_icp_inliers and np.isfinite(icp.rmse[0]):
+    if (
+        settings.refine.icp_iterations > 0
+        and icp.inliers[0] >= settings.refine.min_icp_inliers
+        and np.isfinite(icp.rmse[0])
+    ):
         fine, rival = polished(query, codebook, icp.rotations[0], icp.translations[0], settings)
         icp = fine if fine is not None else icp
     R, t = icp.rotations, icp.translations
     if not usable_icp(query, codebook, icp.inliers, icp.rmse, t, settings)[0]:
         return None
-    scores = score_poses(query, codebook, coarse, R, t, settings.hypothesis_inlier_distance * d, 0.0, settings)
+    scores = score_poses(query, codebook, coarse, R, t, settings.refine.hypothesis_inlier_distance * d, 0.0, settings)
     gain = float(scores.net[0] - result.scores.net[0])
-    if gain <= settings.turn_switch_gain:
+    if gain <= settings.turn.switch_gain:
         return None
     return result._replace(R=R[0], t=t[0], scores=scores, refined=True, margin=gain, rival=rival)
 
@@ -110,20 +114,20 @@ def alternatives(
     (after their coarse ICP) and the pose's turned ``rival`` (settled,
     :func:`flip_rival`), those whose net (inlier fraction minus violations
     on the hypotheses' observed points, :attr:`PoseScores.net`) is within
-    ``settings.alternative_within`` of the pose's, each more than
+    ``settings.alternatives.within`` of the pose's, each more than
     ``RIVAL_DISTANCE`` × d from the pose and from each other (ADD, or ADD-S
-    for a symmetric object), best first, at most ``settings.alternatives``.
+    for a symmetric object), best first, at most ``settings.alternatives.max_count``.
     Nothing is refined again: they cost a few distances. Empty for a pose
     stage 5 did not refine."""
     found = [Hypotheses(result.R[None], result.t[None], result.scores.net)]
-    if settings.alternatives > 0 and result.refined:
+    if settings.alternatives.max_count > 0 and result.refined:
         if hypotheses is not None:
             found.append(hypotheses)
         if len(rival.rotations):
             found.append(Hypotheses(rival.rotations, rival.translations, np.array([rival.net])))
     R, t, net = (np.concatenate(column) for column in zip(*found))
-    allowed = net >= net[0] - settings.alternative_within
-    picked = distinct_poses(codebook, R, t, np.argsort(-net, kind="stable"), allowed, settings.alternatives)
+    allowed = net >= net[0] - settings.alternatives.within
+    picked = distinct_poses(codebook, R, t, np.argsort(-net, kind="stable"), allowed, settings.alternatives.max_count)
     return Hypotheses(R[picked], t[picked], net[picked])
 
 
@@ -203,7 +207,7 @@ def refine_hypotheses(
     settings: EstimateSettings = DEFAULT_SETTINGS,
     icp_cache: dict | None = None,
 ) -> Refined | None:
-    """Stage 5: coarse ICP from the ``settings.hypotheses`` best distinct
+    """Stage 5: coarse ICP from the ``settings.refine.hypotheses`` best distinct
     candidates, each scored again. Hypotheses that explain nearly as many
     points as the best and violate free space little more than the least
     violating compete; the lowest ICP RMSE wins (near ties: :func:`tie_broken`)
@@ -215,20 +219,20 @@ def refine_hypotheses(
     rival search, so a second, wider search does not repeat the first one's."""
     cache: dict = {} if icp_cache is None else icp_cache
     d = codebook.model.diameter
-    coarse = query.sample(settings.hypothesis_points, settings.subsample_seed)
+    coarse = query.sample(settings.refine.hypothesis_points, settings.subsample_seed)
     starts = distinct_hypotheses(
-        rotations, np.argsort(candidate_cost, kind="stable"), settings.hypotheses, settings.distinct_deg
+        rotations, np.argsort(candidate_cost, kind="stable"), settings.refine.hypotheses, settings.refine.distinct_deg
     )
-    max_distance = settings.icp_max_distance * d
+    max_distance = settings.refine.icp_max_distance * d
     new = [int(s) for s in starts if ("coarse", int(s)) not in cache]
     if new:
         icp = codebook.index.refine(
             coarse,
             rotations[new],
             translations[new],
-            settings.hypothesis_iterations,
+            settings.refine.hypothesis_iterations,
             max_distance,
-            two_cores=settings.coarse_icp_on_two_cores,
+            two_cores=settings.refine.coarse_icp_on_two_cores,
         )
         for i, s in enumerate(new):  # ICP runs each start on its own: one at a time is the same
             cache["coarse", s] = (icp.rotations[i], icp.translations[i], icp.inliers[i], icp.rmse[i])
@@ -236,10 +240,10 @@ def refine_hypotheses(
     usable = usable_icp(query, codebook, inliers, rmse, hyp_t, settings)
     if not usable.any():
         return None
-    inlier_distance = settings.hypothesis_inlier_distance * d
+    inlier_distance = settings.refine.hypothesis_inlier_distance * d
     scores = score_poses(query, codebook, coarse, hyp_R, hyp_t, inlier_distance, 0.0, settings)
-    explains = scores.inlier_fraction >= settings.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
-    free = scores.violation <= scores.violation[usable].min() + settings.hypothesis_free_space_margin
+    explains = scores.inlier_fraction >= settings.refine.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
+    free = scores.violation <= scores.violation[usable].min() + settings.refine.hypothesis_free_space_margin
     competing = usable & explains & free
     pick = int(np.argmin(np.where(competing, rmse, np.inf)))
     pick, tie_polish = tie_broken(query, codebook, hyp_R, hyp_t, rmse, competing, pick, starts, settings, cache)
@@ -287,16 +291,16 @@ def tie_broken(
     coarse ICP RMSEs) once near ties are broken, and the pick's polish when
     one was made: when ``competing`` rivals of ``pick`` (more than
     ``RIVAL_DISTANCE`` × d away) have an RMSE within
-    ``settings.tie_polish_within`` of its, each of them and ``pick`` are
+    ``settings.refine.tie_polish_within`` of its, each of them and ``pick`` are
     polished (:func:`polish`) and the lowest polished RMSE of a usable ICP
     wins (the first on equal RMSEs). ``pick`` itself when there is no such
-    tie, no polish (``settings.icp_iterations`` 0) or no usable polish. The
+    tie, no polish (``settings.refine.icp_iterations`` 0) or no usable polish. The
     polishes are kept in ``cache`` under the tied ``starts``."""
-    if settings.tie_polish_within <= 0 or settings.icp_iterations == 0:
+    if settings.refine.tie_polish_within <= 0 or settings.refine.icp_iterations == 0:
         return pick, None
     d = codebook.model.diameter
     rivals = pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d
-    tied = np.flatnonzero(competing & rivals & (rmse <= rmse[pick] * (1 + settings.tie_polish_within)))
+    tied = np.flatnonzero(competing & rivals & (rmse <= rmse[pick] * (1 + settings.refine.tie_polish_within)))
     if not len(tied):
         return pick, None
     tie = np.concatenate([[pick], tied])
@@ -319,12 +323,12 @@ RIVAL_POINTS = 64
 
 
 #: Keypoint alignment iterations of each turned pose of the flip margin
-#: (the candidates take ``settings.align_iterations``) ...
+#: (the candidates take ``settings.retrieve.align_iterations``) ...
 FLIP_ALIGN_ITERATIONS = 1
 
 
 #: ... and the rival turned poses that screen best, this many, are settled
-#: by this many ICP iterations (pairing within ``settings.icp_max_distance``)
+#: by this many ICP iterations (pairing within ``settings.refine.icp_max_distance``)
 #: before they are scored: an unsettled rival that is the truth loses to a
 #: polished wrong pose. On stressed views of near-symmetric training parts
 #: the margin alone told right from wrong poses at AUROC 0.75 unsettled,
@@ -358,7 +362,7 @@ class RivalSearch:
         # net of 0, the core's margin is minus the rival's net.
         self._search = codebook.index.flip_margin(
             query.keypoints,
-            query.sample(settings.hypothesis_points, settings.subsample_seed),
+            query.sample(settings.refine.hypothesis_points, settings.subsample_seed),
             query.free_space,
             np.ascontiguousarray(R, dtype=np.float64),
             np.ascontiguousarray(t, dtype=np.float64),
@@ -367,16 +371,16 @@ class RivalSearch:
             turn_translations,
             _core.FlipSettings(
                 align_iterations=FLIP_ALIGN_ITERATIONS,
-                align_distance=settings.candidate_inlier_distance * d,
-                inlier_distance=settings.hypothesis_inlier_distance * d,
+                align_distance=settings.retrieve.candidate_inlier_distance * d,
+                inlier_distance=settings.refine.hypothesis_inlier_distance * d,
                 free_space_tolerance=free_space_tolerance(query.median_depth, d, settings),
-                model_stride=max(settings.free_space_model_stride, 1),
+                model_stride=max(settings.score.free_space_model_stride, 1),
                 rival_distance=RIVAL_DISTANCE * d,
                 rival_points=RIVAL_POINTS,
                 symmetric=codebook.symmetry.symmetric,
                 settled=FLIP_SETTLED_RIVALS,
                 settle_iterations=FLIP_SETTLE_ITERATIONS,
-                settle_distance=settings.icp_max_distance * d,
+                settle_distance=settings.refine.icp_max_distance * d,
             ),
             beside=beside,
         )
@@ -396,15 +400,15 @@ def polished(
     done: _core.IcpResults | None = None,
 ) -> tuple[_core.IcpResults | None, RivalSearch]:
     """Pose ``(R, t)``'s final ICP :func:`polish` (None when
-    ``settings.icp_iterations`` is 0; ``done`` when given, a polish of the
+    ``settings.refine.icp_iterations`` is 0; ``done`` when given, a polish of the
     pose already made: a near tie's) and the search for its turned rival
     (:func:`flip_rival`, from the pose before the polish: the rival is
     settled by ICP anyway), handed to another core before the polish starts
-    when ``settings.flip_rival_beside_polish``, else found when first
+    when ``settings.refine.flip_rival_beside_polish``, else found when first
     asked for (:class:`RivalSearch`)."""
-    beside = settings.icp_iterations > 0 and settings.flip_rival_beside_polish
+    beside = settings.refine.icp_iterations > 0 and settings.refine.flip_rival_beside_polish
     rival = RivalSearch(query, codebook, R, t, settings, beside=beside)
-    if settings.icp_iterations == 0:
+    if settings.refine.icp_iterations == 0:
         return None, rival
     if done is not None:
         return done, rival
@@ -414,14 +418,14 @@ def polished(
 def polish(
     query: Query, codebook: Codebook, rotations: np.ndarray, translations: np.ndarray, settings: EstimateSettings
 ) -> _core.IcpResults:
-    """The final ICP polish of poses (model frame → camera): ``settings.icp_iterations``
-    on ``settings.icp_points`` of the query's points."""
+    """The final ICP polish of poses (model frame → camera): ``settings.refine.icp_iterations``
+    on ``settings.refine.icp_points`` of the query's points."""
     return codebook.index.refine(
-        query.sample(settings.icp_points, settings.subsample_seed + 1),
+        query.sample(settings.refine.icp_points, settings.subsample_seed + 1),
         rotations,
         translations,
-        settings.icp_iterations,
-        settings.icp_max_distance * codebook.model.diameter,
+        settings.refine.icp_iterations,
+        settings.refine.icp_max_distance * codebook.model.diameter,
     )
 
 
@@ -438,7 +442,7 @@ def usable_icp(
     model's centre still near the cloud (:func:`near_the_cloud`)."""
     return (
         np.isfinite(rmse)
-        & (inliers >= settings.min_icp_inliers)
+        & (inliers >= settings.refine.min_icp_inliers)
         & near_the_cloud(query.centroid, codebook, translations, settings)
     )
 

@@ -66,13 +66,13 @@ def candidate_poses(
     then moved so the keypoints land on the model."""
     rotations = query.r_corr.T @ rotation_about_z(angles) @ codebook.viewpoints.rotations[candidates]
     translations = query.centroid - np.einsum("kij,kj->ki", rotations, codebook.centroids[candidates])
-    if settings.align_iterations > 0:
+    if settings.retrieve.align_iterations > 0:
         translations = codebook.index.align_translations(
             query.keypoints,
             rotations,
             translations,
-            settings.align_iterations,
-            settings.candidate_inlier_distance * codebook.model.diameter,
+            settings.retrieve.align_iterations,
+            settings.retrieve.candidate_inlier_distance * codebook.model.diameter,
         )
     return rotations, translations
 
@@ -83,10 +83,13 @@ def pair_poses(
     """Stage 3 without the codebook's views: poses voted for by pairs of
     oriented points of the query and the model (point-pair features, Rust),
     ``(R (P, 3, 3), t (P, 3))`` model frame → camera, most votes first, at
-    most ``settings.pair_poses``. Each pair is local, so they find the
+    most ``settings.second_search.pair_poses``. Each pair is local, so they find the
     object when most of it is hidden and the map's code matches no view."""
     rotations, translations, _ = codebook.index.pair_poses(
-        query.points, settings.pair_scene_points, settings.pair_reference_stride, settings.pair_poses
+        query.points,
+        settings.second_search.pair_scene_points,
+        settings.second_search.pair_reference_stride,
+        settings.second_search.pair_poses,
     )
     return rotations, translations
 

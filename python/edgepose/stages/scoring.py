@@ -48,13 +48,13 @@ class PoseScores(NamedTuple):
 
 def free_space_tolerance(median_depth: float, diameter: float, settings: EstimateSettings = DEFAULT_SETTINGS) -> float:
     """How far (metres) a camera-facing model point must stand in front of
-    the observed depth to contradict the view: ``settings.free_space_tolerance``
-    × ``diameter``, or ``settings.free_space_noise_sigmas`` standard
-    deviations of the sensor's depth noise (``settings.depth_noise``) at the
+    the observed depth to contradict the view: ``settings.score.free_space_tolerance``
+    × ``diameter``, or ``settings.score.free_space_noise_sigmas`` standard
+    deviations of the sensor's depth noise (``settings.score.depth_noise``) at the
     observed points' ``median_depth`` (metres), whichever is larger."""
-    a, b, c = settings.depth_noise
+    a, b, c = settings.score.depth_noise
     noise = a + b * (median_depth - c) ** 2
-    return max(settings.free_space_tolerance * diameter, settings.free_space_noise_sigmas * noise)
+    return max(settings.score.free_space_tolerance * diameter, settings.score.free_space_noise_sigmas * noise)
 
 
 def score_poses(
@@ -83,7 +83,7 @@ def score_poses(
         np.ascontiguousarray(translations),
         inlier_distance,
         free_space_tolerance(query.median_depth, d, settings),
-        0 if fit_only else max(settings.free_space_model_stride, 1),
+        0 if fit_only else max(settings.score.free_space_model_stride, 1),
     )
     fit, violation, scene = scored.fit, scored.free_space_violation, scored.scene_violation
     return PoseScores(
@@ -113,7 +113,7 @@ def rim_tolerant_violation(
         query.points[:1],
         np.asarray(R[None], dtype=np.float64),
         np.asarray(t[None], dtype=np.float64),
-        settings.hypothesis_inlier_distance * codebook.model.diameter,
+        settings.refine.hypothesis_inlier_distance * codebook.model.diameter,
         0.0,
         settings,
         query.rim_tolerant_free_space,
@@ -126,7 +126,7 @@ def near_the_cloud(
 ) -> np.ndarray:
     """(H,) bool: whether each pose (model frame → camera, ``translations``
     (H, 3) metres: where the model's centre lands) keeps the model's centre
-    within ``settings.max_centre_offset`` model radii of the observed
+    within ``settings.refine.max_centre_offset`` model radii of the observed
     ``centroid`` ((3,) camera frame, metres: :attr:`Query.centroid`)."""
     radius = 1.0 / codebook.model.scale
-    return np.linalg.norm(translations - centroid, axis=1) <= settings.max_centre_offset * radius
+    return np.linalg.norm(translations - centroid, axis=1) <= settings.refine.max_centre_offset * radius
