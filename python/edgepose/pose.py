@@ -176,7 +176,7 @@ def estimate(
     the object: a pose that would stand in front of background the camera
     saw beside the object's mask contradicts the view (what an occluder
     hides does not). It makes poses of partly hidden objects more often
-    right and ``confidence`` sharper; it costs ~0.3–0.7 ms.
+    right and ``confidence`` sharper, for a fraction of a millisecond.
 
     ``settings`` holds every tuning value; ``k`` (codebook views verified) and
     ``icp_iterations`` (final ICP polish; 0: the hypotheses' coarse ICP only)

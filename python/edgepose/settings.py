@@ -152,8 +152,7 @@ class RefineSettings:
     hypothesis_points: int = 256
     """Observed points used by the hypotheses' coarse ICP and their scoring."""
     hypothesis_iterations: int = 7
-    """Coarse ICP iterations per hypothesis. Default: as many poses right as
-    with 10, for less time; 5 got fewer right."""
+    """Coarse ICP iterations per hypothesis: enough to tell hypotheses apart, not to polish them."""
     hypothesis_inlier_distance: float = 0.02
     """× d. After ICP, an observed point this close to the model is an inlier."""
     hypothesis_inlier_ratio: float = 0.9
@@ -168,9 +167,8 @@ class RefineSettings:
     fraction (0–1) of its RMSE: then each of those is polished too (the final
     ICP, ``icp_iterations`` on ``icp_points``) and the lowest polished RMSE
     wins. The winner's polish is the stage's final polish (not made twice).
-    0: never (the cheaper, less robust search). Default: the coarse ICP's
-    256 points decide such near ties by noise on a small fragment; 0.1 got
-    more poses right than 0.05, as many as 0.2, for a fraction of a ms."""
+    0: never (the cheaper, less robust search). The coarse ICP's 256 points
+    decide such near ties by noise on a small fragment."""
     max_centre_offset: float = 1.25
     """× the model's radius (its farthest point from its centre). Every
     observed point of the object lies within one radius of the model's
@@ -179,9 +177,8 @@ class RefineSettings:
     icp_points: int = 1024
     """Observed points used by the final ICP polish of the winner."""
     icp_iterations: int = 12
-    """Iterations of the final ICP polish (0: the coarse ICP result only).
-    Default: most polishes converge in 3–7; 12 got as many poses right as
-    20, for less time."""
+    """Iterations of the final ICP polish (0: the coarse ICP result only);
+    most polishes converge well before."""
     icp_max_distance: float = 0.1
     """× d. ICP ignores pairs farther apart than this."""
     min_icp_inliers: int = 16
@@ -215,11 +212,11 @@ class SecondSearchSettings:
 
     retry_below_inlier_fraction: float = 0.95
     """A refined pose explaining fewer of the observed points than this
-    fraction (0–1) within ``doubt_inlier_distance`` is doubtful. Default:
-    correct poses rarely fall below it, wrong ones mostly do ..."""
+    fraction (0–1) within ``doubt_inlier_distance`` is doubtful: correct
+    poses rarely fall below it, wrong ones mostly do ..."""
     doubt_inlier_distance: float = 0.04
-    """× d. Default: looser than ``refine.hypothesis_inlier_distance``, so that
-    depth noise at range (σ 3 mm at 1.5 m) does not make a correct pose doubtful."""
+    """× d. Looser than ``refine.hypothesis_inlier_distance``, so that depth
+    noise at range does not make a correct pose doubtful."""
     retry_above_free_space: float = 0.03
     """... as is one violating free space (a fraction 0–1 of its
     camera-facing model points, one grid cell of slack at the silhouette's
@@ -228,7 +225,7 @@ class SecondSearchSettings:
     candidates down the cosine ranking) join the first search's candidates,
     ``retry_hypotheses`` of them are refined, and the result that explains
     more points net of free-space violations wins. Trusted poses cost
-    nothing extra. Default: above what most correct poses violate."""
+    nothing extra."""
     retry_above_scene_violation: float = 0.1
     """... as is one (with the frame's depth given) whose camera-facing model
     points off the observed silhouette stand in front of the scene's depth
@@ -236,28 +233,22 @@ class SecondSearchSettings:
     retry_below_confidence: float = 0.8
     """... and so is one whose ``Pose.confidence`` (0–1) is below this: a
     wrong pose can explain the few points of a mostly hidden object well
-    and still get a confidence of 0.5–0.8. Default: more occluded poses
-    right than at 0.5 (the trust rule's threshold), no level worse, at the
-    same latency (the confidence was refitted for it)."""
+    and still get a middling confidence (the confidence model was fitted
+    with this rule deciding the second searches)."""
     pair_poses: int = 8
     """Poses voted for by pairs of oriented points (``stages.pair_poses``)
-    that join a doubtful pose's second search (0: none). Default: occlusion
-    is what makes a pose doubtful and what the map's code cannot see past;
-    these poses put most occluded views right, faster than more cosine
-    candidates (voting in every first search too gains little for more time)."""
+    that join a doubtful pose's second search (0: none): occlusion is what
+    makes a pose doubtful and what the map's code cannot see past; point
+    pairs see past it."""
     pair_scene_points: int = 160
-    """Observed points (farthest-point samples) that vote for pair poses ...
-    Default: as many poses right as 192, faster; 128 got fewer right."""
+    """Observed points (farthest-point samples) that vote for pair poses ..."""
     pair_reference_stride: int = 2
-    """... every n-th of them as a reference point. Default: half of them
-    keeps the voting to a few ms."""
+    """... every n-th of them as a reference point (fewer references: less voting time)."""
     retry_k: int = 0
     """Candidates down the cosine ranking that join the second search (0
-    or ≤ ``retrieve.k``: none). Default: with ``pair_poses``, more cosine candidates
-    add nothing and cost time per doubtful view."""
+    or ≤ ``retrieve.k``: none); with ``pair_poses`` they add little."""
     retry_hypotheses: int = 6
-    """Hypotheses refined by the second search (its ``refine.hypotheses``).
-    Default: as many poses right as 8, for less time (5 got fewer right than 8)."""
+    """Hypotheses refined by the second search (its ``refine.hypotheses``)."""
 
 
 @dataclass(frozen=True)
@@ -273,9 +264,8 @@ class TurnSettings:
     (any value ≤ −1: never)."""
     switch_gain: float = 0.02
     """... and the pose is that rival instead when it explains this much
-    more of the view (inlier fraction minus violations, 0–1). Default: on
-    near-symmetric training parts it turned many more wrong poses right
-    than right ones wrong (0 nearly as many each way, 0.05 few)."""
+    more of the view (inlier fraction minus violations, 0–1): a margin
+    against noise, so a right pose is rarely turned wrong."""
 
 
 @dataclass(frozen=True)
@@ -291,8 +281,7 @@ class AlternativeSettings:
     violations (inlier fraction minus free-space and scene violations).
     Their count and the best one's margin are evidence of
     ``Pose.confidence``, whose model was fitted with these two values.
-    Default: ``refine.hypothesis_free_space_margin``; it caught the truth as often
-    as 0.03, and 0.1 gave many more right occluded poses alternatives."""
+    The same margin as ``refine.hypothesis_free_space_margin``."""
     unseen_turns: int = 8
     """When the object has a near-symmetry axis (a mug's body) and the view
     leaves the turn about it open (the handle unseen): at most this many

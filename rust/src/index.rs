@@ -20,14 +20,13 @@ use crate::Point3;
 
 /// The model's kd-tree: leaves of 8 points, not kiddo's default 32. ICP,
 /// scoring and verification query it tens of thousands of times per
-/// estimate for points near the surface, where small leaves are faster:
-/// ICP on 1,024 points × 20 iterations took 25–30 % less time on the YCB
-/// models (e.g. 6.1 → 4.3 ms), 4 and 16 were slower, 128 twice as slow.
-/// Nearest neighbours are exact whatever the leaf size.
+/// estimate for points near the surface, where small leaves are faster
+/// (`docs/tuning.md`, "The Rust core's constants"). Nearest neighbours are
+/// exact whatever the leaf size.
 pub(crate) type ModelTree = ImmutableKdTree<f32, u32, 3, 8>;
 
 /// The model's points and normals with a kd-tree and grids of cells over
-/// the points (model frame, metres), built in 15–30 ms for 4,096 points.
+/// the points (model frame, metres), built once per codebook load.
 /// Immutable, so many threads may query it at once.
 pub struct ModelIndex {
     tree: ModelTree,
@@ -149,9 +148,7 @@ impl ModelIndex {
 
 /// Cells of the coarse grid are this many mean point spacings wide: a point
 /// off the candidate lists' band finds its nearest model point within the
-/// 27 cells around it. Measured on the YCB models (ICP of 1,024 points × 20
-/// iterations, before the lists): 2 spacings 3.1 ms, 3–5 spacings 2.2–2.4 ms,
-/// the kd-tree alone 4.4 ms.
+/// 27 cells around it (the width: `docs/tuning.md`, "The Rust core's constants").
 const CELL_SPACINGS: f32 = 4.0;
 
 /// Cells farther than this many rings around a query's cell are not
@@ -226,9 +223,8 @@ struct CellIndex {
     lists: CandidateLists,
 }
 
-/// Cells of [`CandidateLists`] are this many mean point spacings wide. ICP
-/// of 1,024 points × 20 iterations on the YCB models: 0.7 spacings 1.74 ms,
-/// 1.0 and 1.5 spacings 1.61 ms (the coarse grid alone 2.27 ms).
+/// Cells of [`CandidateLists`] are this many mean point spacings wide: short
+/// lists, few cells (`docs/tuning.md`, "The Rust core's constants").
 const LIST_SPACINGS: f32 = 1.0;
 
 /// Cells of [`CandidateLists`] whose centre lies within this many cell sides

@@ -215,7 +215,7 @@ fn orient_outward(points: &[Point3], normals: &mut [Point3]) {
     }
 }
 
-/// Largest pairwise distance, exact (O(n²), parallel; ~10 ms for 4,096 points).
+/// Largest pairwise distance, exact (O(n²), parallel: once per model).
 pub fn diameter(points: &[Point3]) -> f64 {
     threads::install(|| {
         points

@@ -101,7 +101,7 @@ pub struct PairTable {
 
 impl PairTable {
     /// Pairs of the first [`MODEL_POINTS`] of `points` (with `normals`,
-    /// unit, outward): in ~5–15 ms for a 4,096-point model.
+    /// unit, outward): built on the first second search, not at onboarding.
     pub fn new(points: &[Point3], normals: &[Point3]) -> Self {
         let m = points.len().min(MODEL_POINTS);
         let pts: Vec<Vector3<f64>> = points[..m].iter().map(vector).collect();

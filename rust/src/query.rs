@@ -12,7 +12,7 @@
 //!    frame, are the query's keypoints.
 //!
 //! Both run in one call each, without the GIL, for `estimate` and for the
-//! threads of `estimate_many` (~1 ms per object on the BOP frames).
+//! threads of `estimate_many`.
 
 use std::collections::HashSet;
 use std::fmt;

@@ -29,10 +29,8 @@
 //!    out, even where its ramp meets the edge (a touching neighbour, or the
 //!    support plane, the mask spilled onto).
 //!
-//! Steps 1 and 2 take ~0.45 ms for 2,048 points (`cargo bench --bench search
-//! -- segment`; 0.54 ms median on the tuning set's rendered clouds). Step 3
-//! adds about two fifths (on a slow day, YCB clouds, clean and 5 px spill:
-//! 0.76–0.86 ms without it, 1.01–1.24 ms with it).
+//! Its cost is measured by `cargo bench --bench search -- segment`
+//! (`docs/tuning.md`, "The Rust core's constants").
 
 use crate::index::{bounds, counting_sort, sampled_spacings, Grid, ModelTree};
 use crate::Point3;

@@ -330,13 +330,7 @@ FLIP_ALIGN_ITERATIONS = 1
 #: ... and the rival turned poses that screen best, this many, are settled
 #: by this many ICP iterations (pairing within ``settings.refine.icp_max_distance``)
 #: before they are scored: an unsettled rival that is the truth loses to a
-#: polished wrong pose. On stressed views of near-symmetric training parts
-#: the margin alone told right from wrong poses at AUROC 0.75 unsettled,
-#: 0.80–0.87 settled (2 rivals, 2 iterations), 0.82–0.88 with every rival
-#: settled at ~3× the cost; on all stressed training views 0.833 → 0.868,
-#: for ~0.2 ms an estimate (``export/README.md``). One rival instead of two:
-#: the confidence's cross-validated stressed AUROC the same (0.967 against
-#: 0.966), its lap 0.59 → 0.43 ms (median, 288 tuning-part estimates).
+#: polished wrong pose (the evidence: ``docs/tuning.md``, "Outside the settings").
 FLIP_SETTLED_RIVALS = 1
 
 
@@ -357,8 +351,8 @@ class RivalSearch:
         d = codebook.model.diameter
         turn_rotations, turn_translations = codebook.doubtful_turns
         # Each turned pose is moved (not turned) so the query's keypoints land on
-        # the model, as the candidates are (~0.05 ms); only the best few are
-        # then settled by ICP (settling all of them: ~3× the cost). Given an own
+        # the model, as the candidates are (cheap); only the best few are
+        # then settled by ICP (settling all of them costs several times more). Given an own
         # net of 0, the core's margin is minus the rival's net.
         self._search = codebook.index.flip_margin(
             query.keypoints,
