@@ -670,7 +670,7 @@ AUROC: chance that a correct pose scores above a wrong one; ECE: expected calibr
 ### Alternatives
 
 `Pose.alternatives`: other poses that explain the view nearly as well (within
-`EstimateSettings.alternative_within` of the pose's explained share net of violations), each more than
+`EstimateSettings.alternatives.within` of the pose's explained share net of violations), each more than
 0.1 × diameter from the pose and from each other: where the object may be instead. Of the wrong poses,
 how many had the truth among them; of the right poses, how many came with any (a robot that looks
 again whenever there are alternatives looks again this often when it need not).
