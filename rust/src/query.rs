@@ -57,24 +57,10 @@ pub fn back_project<T: Copy + Into<f64>>(
         .sum();
     let mut points = Vec::with_capacity(flags);
     let lens = BoxLens::new(camera, width, &area, depth_scale);
-    each_measured_pixel(depth, mask, &area, &lens, |_, p| points.push(p));
-    points
-}
-
-/// `visit(pixel, point)` for each pixel of `area` (row-major index into
-/// `depth`) that [`back_project`] keeps, in order.
-fn each_measured_pixel<T: Copy + Into<f64>>(
-    depth: &[T],
-    mask: &[bool],
-    area: &MaskBox,
-    lens: &BoxLens,
-    mut visit: impl FnMut(usize, [f64; 3]),
-) {
-    each_masked_pixel(depth, mask, area, lens.width, |pixel, u, row, d| {
-        if let Some(p) = lens.point(u, row, d) {
-            visit(pixel, p);
-        }
+    each_masked_pixel(depth, mask, &area, width, |_, u, row, d| {
+        points.extend(lens.point(u, row, d));
     });
+    points
 }
 
 /// `visit(pixel, u, row, depth)` for each flagged pixel of `area`: its
@@ -412,6 +398,8 @@ pub fn draw(n: usize, count: usize, seed: u64) -> Vec<usize> {
     }
     if n / 64 <= 16 * count {
         // A bit per index: no hashing, and read out in order without a sort.
+        // At most 16 words a draw, so memory stays bounded by `count` (what
+        // `clean_cloud` promises, whatever the cloud's size); beyond, a hash set.
         let mut chosen = vec![0u64; n.div_ceil(64)];
         floyd(n, count, seed, |i| {
             let (word, bit) = (i / 64, 1u64 << (i % 64));
