@@ -346,7 +346,10 @@ class EstimateSettings:
         """A copy with some fields changed; a stage's field by its dotted
         name: ``with_(**{"refine.icp_iterations": 20})``. ``TypeError``
         naming a name that is no setting (and, for a name from before the
-        settings were nested, the dotted name it is now)."""
+        settings were nested, the dotted name it is now). No changes: these
+        settings themselves (``estimate`` asks for its shortcuts on every call)."""
+        if not changes:
+            return self
         nested: dict[str, dict[str, Any]] = {}
         for name in list(changes):
             if name not in _NAMES:
