@@ -407,9 +407,24 @@ impl CandidateLists {
                     }
                     // Slack for rounding: a few more points, never one fewer.
                     let reach = (r + 2.0 * half_diagonal) * (1.0 + 1e-5) + 1e-6 * cell as f64;
-                    let mut items: Vec<u16> = tree
-                        .within_unsorted::<SquaredEuclidean>(&centre, (reach * reach) as f32)
-                        .into_iter()
+                    let mut found =
+                        tree.within_unsorted::<SquaredEuclidean>(&centre, (reach * reach) as f32);
+                    if found.len() > RIVALS {
+                        found.select_nth_unstable_by(RIVALS, |a, b| {
+                            a.distance.total_cmp(&b.distance)
+                        });
+                    }
+                    let rivals: Vec<u32> = found.iter().take(RIVALS).map(|nn| nn.item).collect();
+                    let cell_box = CellBox::around(centre, cell, reach);
+                    let mut items: Vec<u16> = found
+                        .iter()
+                        .filter(|nn| {
+                            let j = nn.item;
+                            rivals.iter().all(|&i| {
+                                i == j
+                                    || cell_box.can_beat(&points[j as usize], &points[i as usize])
+                            })
+                        })
                         .map(|nn| nn.item as u16) // `short`: every index fits
                         .collect();
                     items.sort_unstable();
@@ -438,6 +453,53 @@ impl CandidateLists {
         };
         let c = self.grid.flat(g);
         &self.items[self.starts[c] as usize..self.starts[c + 1] as usize]
+    }
+}
+
+/// A candidate list's point is tested against this many of the points
+/// nearest to its cell's centre (see [`CellBox::can_beat`]).
+const RIVALS: usize = 8;
+
+/// A cell of [`CandidateLists`] grown a little for rounding, and the slack
+/// of its tests (squared metres): what decides whether a model point can be
+/// nearest to some point in the cell.
+struct CellBox {
+    lo: [f64; 3],
+    hi: [f64; 3],
+    slack: f64,
+}
+
+impl CellBox {
+    /// The cell of side `cell` around `centre` (metres), whose lists reach
+    /// `reach` metres from the centre.
+    fn around(centre: [f32; 3], cell: f32, reach: f64) -> Self {
+        let half = 0.5 * cell as f64 * (1.0 + 1e-4) + 1e-9;
+        Self {
+            lo: centre.map(|v| v as f64 - half),
+            hi: centre.map(|v| v as f64 + half),
+            // Far above the rounding of f32 squared distances up to `reach`.
+            slack: 1e-5 * (reach + 3f64.sqrt() * half).powi(2),
+        }
+    }
+
+    /// Whether model point `j` can be at least as near as point `i` to some
+    /// point `q` of the box: `|q − j|² − |q − i|²` is linear in `q`, so its
+    /// least value over the box lies at a corner. A point that cannot beat
+    /// some other point is nearest to no point of the cell and leaves its
+    /// list (ties and rounding kept in by the slack).
+    fn can_beat(&self, j: &Point3, i: &Point3) -> bool {
+        let mut least = 0.0;
+        for a in 0..3 {
+            let (ja, ia) = (j[a] as f64, i[a] as f64);
+            let towards = ia - ja;
+            let q = if towards >= 0.0 {
+                self.lo[a]
+            } else {
+                self.hi[a]
+            };
+            least += 2.0 * q * towards + ja * ja - ia * ia;
+        }
+        least <= self.slack
     }
 }
 
@@ -604,6 +666,53 @@ fn squared(a: &[f32; 3], b: &[f32; 3]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_point_that_cannot_beat_a_rival_is_nearest_to_no_point_of_the_cell() {
+        let mut state = 11u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let cell = 0.004f32;
+        let cell_box = CellBox::around([0.0; 3], cell, 0.01);
+        let (mut kept, mut dropped) = (0, 0);
+        for _ in 0..2000 {
+            let mut point = || {
+                [
+                    0.02 * uniform() - 0.01,
+                    0.02 * uniform() - 0.01,
+                    0.02 * uniform() - 0.01,
+                ]
+            };
+            let (j, i) = (point(), point());
+            // Some point of the cell (its corners and a lattice) nearer to j than to i?
+            let mut beats = false;
+            for a in 0..=4 {
+                for b in 0..=4 {
+                    for c in 0..=4 {
+                        let q = [a, b, c].map(|k| (k as f32 / 4.0 - 0.5) * cell);
+                        beats |= squared(&q, &j) <= squared(&q, &i);
+                    }
+                }
+            }
+            if beats {
+                assert!(
+                    cell_box.can_beat(&j, &i),
+                    "{j:?} beats {i:?} somewhere in the cell"
+                );
+                kept += 1;
+            } else if !cell_box.can_beat(&j, &i) {
+                dropped += 1;
+            }
+        }
+        assert!(
+            kept > 100 && dropped > 100,
+            "kept {kept}, dropped {dropped}"
+        );
+    }
 
     #[test]
     fn a_flat_or_thin_box_stays_within_the_cell_budget() {
