@@ -52,17 +52,23 @@ pub fn farthest_point_sample(points: &[Point3], m: usize) -> Vec<u32> {
     chosen
 }
 
-/// Lanes processed together; written so the compiler keeps them in vector
-/// registers (two SSE or one AVX register of f32).
-const LANES: usize = 8;
+/// Lanes processed together (and the padding of the point arrays): two
+/// AVX registers or four SSE registers of f32. The result is the same
+/// whatever the lane count: the largest distance, lowest index on ties.
+const LANES: usize = 16;
 
 /// Lowers each point's distance-to-chosen-set with its distance to `c`, and
 /// returns the index of the largest result (lowest index on ties).
 #[inline]
 fn update_and_argmax(xs: &[f32], ys: &[f32], zs: &[f32], min_sq: &mut [f32], c: Point3) -> usize {
     #[cfg(target_arch = "x86_64")]
-    // SAFETY: SSE2 is part of the x86-64 baseline; all slices hold whole lanes.
-    let (best, best_at) = unsafe { sse2::update_lanes(xs, ys, zs, min_sq, c) };
+    let (best, best_at) = if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 is present (checked above); all slices hold whole lanes.
+        unsafe { x86::update_lanes_avx2(xs, ys, zs, min_sq, c) }
+    } else {
+        // SAFETY: SSE2 is part of the x86-64 baseline; all slices hold whole lanes.
+        unsafe { x86::update_lanes_sse2(xs, ys, zs, min_sq, c) }
+    };
     #[cfg(not(target_arch = "x86_64"))]
     let (best, best_at) = update_lanes(xs, ys, zs, min_sq, c);
 
@@ -76,7 +82,7 @@ fn update_and_argmax(xs: &[f32], ys: &[f32], zs: &[f32], min_sq: &mut [f32], c: 
 }
 
 /// Portable kernel: per lane, the largest lowered distance and where it is.
-#[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+#[cfg_attr(all(target_arch = "x86_64", not(test)), allow(dead_code))]
 fn update_lanes(
     xs: &[f32],
     ys: &[f32],
@@ -100,31 +106,35 @@ fn update_lanes(
     (best, best_at)
 }
 
+/// The portable kernel's result in SSE2 and AVX2 registers: lane `l`
+/// covers indices `≡ l (mod LANES)`, with the same operations in the same
+/// order (no fused multiply-add), so the same bits.
 #[cfg(target_arch = "x86_64")]
-mod sse2 {
+mod x86 {
     use super::LANES;
     use crate::Point3;
     use std::arch::x86_64::*;
 
-    /// Same result as `update_lanes`, two 4-wide registers per step. Lane `l`
-    /// covers indices `≡ l (mod 8)`, exactly as the portable kernel.
     #[target_feature(enable = "sse2")]
-    pub(super) unsafe fn update_lanes(
+    pub(super) unsafe fn update_lanes_sse2(
         xs: &[f32],
         ys: &[f32],
         zs: &[f32],
         min_sq: &mut [f32],
         c: Point3,
     ) -> ([f32; LANES], [u32; LANES]) {
+        const REGS: usize = LANES / 4;
         let (cx, cy, cz) = (_mm_set1_ps(c[0]), _mm_set1_ps(c[1]), _mm_set1_ps(c[2]));
-        let mut best = [_mm_set1_ps(f32::NEG_INFINITY); 2];
-        let mut best_at = [_mm_setzero_si128(); 2];
-        let mut index = [_mm_setr_epi32(0, 1, 2, 3), _mm_setr_epi32(4, 5, 6, 7)];
+        let mut best = [_mm_set1_ps(f32::NEG_INFINITY); REGS];
+        let mut best_at = [_mm_setzero_si128(); REGS];
+        let mut index: [__m128i; REGS] = std::array::from_fn(|h| {
+            _mm_add_epi32(_mm_setr_epi32(0, 1, 2, 3), _mm_set1_epi32(4 * h as i32))
+        });
         let step = _mm_set1_epi32(LANES as i32);
         let (px, py, pz, pd) = (xs.as_ptr(), ys.as_ptr(), zs.as_ptr(), min_sq.as_mut_ptr());
         let mut i = 0;
         while i < xs.len() {
-            for h in 0..2 {
+            for h in 0..REGS {
                 let k = i + 4 * h;
                 let dx = _mm_sub_ps(_mm_loadu_ps(px.add(k)), cx);
                 let dy = _mm_sub_ps(_mm_loadu_ps(py.add(k)), cy);
@@ -149,10 +159,64 @@ mod sse2 {
         }
         let mut values = [0.0f32; LANES];
         let mut at = [0u32; LANES];
-        _mm_storeu_ps(values.as_mut_ptr(), best[0]);
-        _mm_storeu_ps(values.as_mut_ptr().add(4), best[1]);
-        _mm_storeu_si128(at.as_mut_ptr() as *mut __m128i, best_at[0]);
-        _mm_storeu_si128(at.as_mut_ptr().add(4) as *mut __m128i, best_at[1]);
+        for h in 0..REGS {
+            _mm_storeu_ps(values.as_mut_ptr().add(4 * h), best[h]);
+            _mm_storeu_si128(at.as_mut_ptr().add(4 * h) as *mut __m128i, best_at[h]);
+        }
+        (values, at)
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn update_lanes_avx2(
+        xs: &[f32],
+        ys: &[f32],
+        zs: &[f32],
+        min_sq: &mut [f32],
+        c: Point3,
+    ) -> ([f32; LANES], [u32; LANES]) {
+        const REGS: usize = LANES / 8;
+        let (cx, cy, cz) = (
+            _mm256_set1_ps(c[0]),
+            _mm256_set1_ps(c[1]),
+            _mm256_set1_ps(c[2]),
+        );
+        let mut best = [_mm256_set1_ps(f32::NEG_INFINITY); REGS];
+        let mut best_at = [_mm256_setzero_si256(); REGS];
+        let first = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let mut index: [__m256i; REGS] =
+            std::array::from_fn(|h| _mm256_add_epi32(first, _mm256_set1_epi32(8 * h as i32)));
+        let step = _mm256_set1_epi32(LANES as i32);
+        let (px, py, pz, pd) = (xs.as_ptr(), ys.as_ptr(), zs.as_ptr(), min_sq.as_mut_ptr());
+        let mut i = 0;
+        while i < xs.len() {
+            for h in 0..REGS {
+                let k = i + 8 * h;
+                let dx = _mm256_sub_ps(_mm256_loadu_ps(px.add(k)), cx);
+                let dy = _mm256_sub_ps(_mm256_loadu_ps(py.add(k)), cy);
+                let dz = _mm256_sub_ps(_mm256_loadu_ps(pz.add(k)), cz);
+                let d = _mm256_add_ps(
+                    _mm256_add_ps(_mm256_mul_ps(dx, dx), _mm256_mul_ps(dy, dy)),
+                    _mm256_mul_ps(dz, dz),
+                );
+                let lowered = _mm256_min_ps(d, _mm256_loadu_ps(pd.add(k)));
+                _mm256_storeu_ps(pd.add(k), lowered);
+                let better = _mm256_cmp_ps::<_CMP_GT_OQ>(lowered, best[h]);
+                best[h] = _mm256_blendv_ps(best[h], lowered, better);
+                best_at[h] = _mm256_castps_si256(_mm256_blendv_ps(
+                    _mm256_castsi256_ps(best_at[h]),
+                    _mm256_castsi256_ps(index[h]),
+                    better,
+                ));
+                index[h] = _mm256_add_epi32(index[h], step);
+            }
+            i += LANES;
+        }
+        let mut values = [0.0f32; LANES];
+        let mut at = [0u32; LANES];
+        for h in 0..REGS {
+            _mm256_storeu_ps(values.as_mut_ptr().add(8 * h), best[h]);
+            _mm256_storeu_si256(at.as_mut_ptr().add(8 * h) as *mut __m256i, best_at[h]);
+        }
         (values, at)
     }
 }
@@ -201,7 +265,7 @@ mod tests {
 
     #[cfg(target_arch = "x86_64")]
     #[test]
-    fn vector_kernel_matches_portable_kernel() {
+    fn vector_kernels_match_the_portable_kernel() {
         let cloud = random_cloud(1003, 4);
         let n = cloud.len().div_ceil(LANES) * LANES;
         let col = |k: usize| {
@@ -212,13 +276,31 @@ mod tests {
         let (xs, ys, zs) = (col(0), col(1), col(2));
         let mut a = vec![f32::NEG_INFINITY; n];
         a[..cloud.len()].fill(f32::INFINITY);
-        let mut b = a.clone();
-        for c in [[0.5, 0.5, 0.5], [0.0, 1.0, 0.2], [0.9, 0.1, 0.4]] {
-            let portable = update_lanes(&xs, &ys, &zs, &mut a, c);
-            let vector = unsafe { sse2::update_lanes(&xs, &ys, &zs, &mut b, c) };
-            assert_eq!(portable, vector);
+        let (mut b, mut c) = (a.clone(), a.clone());
+        for centre in [[0.5, 0.5, 0.5], [0.0, 1.0, 0.2], [0.9, 0.1, 0.4]] {
+            let portable = update_lanes(&xs, &ys, &zs, &mut a, centre);
+            let sse2 = unsafe { x86::update_lanes_sse2(&xs, &ys, &zs, &mut b, centre) };
+            assert_eq!(portable, sse2);
             assert_eq!(a, b);
+            if std::arch::is_x86_feature_detected!("avx2") {
+                let avx2 = unsafe { x86::update_lanes_avx2(&xs, &ys, &zs, &mut c, centre) };
+                assert_eq!(portable, avx2);
+                assert_eq!(a, c);
+            }
         }
+    }
+
+    #[test]
+    fn ties_go_to_the_lowest_index_whatever_the_lanes() {
+        // Four points at the same distance from the centroid, in different lanes.
+        let mut cloud = vec![[0.0f32; 3]; 40];
+        for (i, p) in cloud.iter_mut().enumerate() {
+            *p = [0.01 * (i % 3) as f32, 0.0, 0.0];
+        }
+        for i in [5, 17, 22, 39] {
+            cloud[i] = [0.0, 0.0, 1.0];
+        }
+        assert_eq!(farthest_point_sample(&cloud, 1), vec![5]);
     }
 
     #[test]
