@@ -187,3 +187,18 @@ def test_shipped_codebooks_hold_what_the_symmetry_search_finds_now(ycb_dir):
         for part in ("discrete", "continuous", "near"):
             a, b = getattr(stored, part), getattr(found, part)
             assert a.shape == b.shape and np.allclose(a, b, atol=1e-5), (book.name, part)
+
+
+def test_a_maps_code_is_the_same_whatever_the_chunks_and_threads():
+    """The encoder splits a batch into chunks run side by side; each map's
+    code and spectrum come out bit for bit as from one call on one thread."""
+    from edgepose.encoder import Encoder
+
+    maps = np.random.default_rng(3).normal(size=(11, 512, 3)).astype(np.float32) * 0.4
+    one = Encoder(threads=1).encode(maps, batch=64)
+    for threads, batch in [(2, 3), (3, 1), (2, 64)]:
+        codes, spectra = Encoder(threads=threads).encode(maps, batch=batch)
+        assert np.array_equal(codes, one[0]) and np.array_equal(spectra, one[1]), (threads, batch)
+    assert Encoder(threads=2).encode(maps[:0])[0].shape == (0, 64)
+    with pytest.raises(ValueError, match="threads"):
+        Encoder(threads=0)

@@ -246,7 +246,7 @@ def _track_many_in_child() -> list[np.ndarray]:
 
 
 def test_work_shared_between_threads_comes_back_in_order_and_raises_when_no_thread_runs():
-    from edgepose.frame import _each
+    from edgepose.workers import each
 
     in_work = [0]
     lock = threading.Lock()
@@ -261,9 +261,9 @@ def test_work_shared_between_threads_comes_back_in_order_and_raises_when_no_thre
             in_work[0] -= 1
         return i * i
 
-    assert _each(lambda i: i * i, 7, 3) == [0, 1, 4, 9, 16, 25, 36]
-    assert _each(lambda i: i, 1, 4) == [0]
-    assert _each(lambda i: i, 0, 2) == []
+    assert each(lambda i: i * i, 7, 3) == [0, 1, 4, 9, 16, 25, 36]
+    assert each(lambda i: i, 1, 4) == [0]
+    assert each(lambda i: i, 0, 2) == []
     with pytest.raises(ValueError, match="object 2"):
-        _each(work, 6, 2)
+        each(work, 6, 2)
     assert in_work[0] == 0  # no thread is left inside the work

@@ -22,6 +22,7 @@ import numpy as np
 from edgepose import _core
 from edgepose.confidence import ConfidenceModel
 from edgepose.errors import EdgePoseError
+from edgepose.workers import each
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 
@@ -33,8 +34,11 @@ class ModelFilesError(EdgePoseError):
 class Encoder:
     """onnxruntime sessions of ``encoder.onnx`` and ``irr.onnx``.
 
-    ``threads`` sets onnxruntime's intra-op threads (1 suits a robot sharing
-    its CPU). Sessions are safe to call from several threads at once.
+    ``threads``: how many chunks of a batch of maps :meth:`encode` runs at
+    once, each onnxruntime call on one core (1 suits a robot sharing its
+    CPU). The networks are many small operations, which one call spreads
+    over cores poorly; chunks side by side use them fully. Sessions are
+    safe to call from several threads at once.
     """
 
     def __init__(self, models_dir: Path | str = MODELS_DIR, threads: int = 1) -> None:
@@ -70,12 +74,12 @@ class Encoder:
             )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise ModelFilesError(f"{models_dir / 'manifest.json'}: malformed ({type(e).__name__}: {e})") from None
+        if threads < 1:
+            raise ValueError(f"threads must be at least 1, got {threads}")
+        self.threads = threads
         options = ort.SessionOptions()
-        options.intra_op_num_threads = threads
+        options.intra_op_num_threads = 1
         options.inter_op_num_threads = 1
-        # Idle intra-op threads sleep instead of spinning: between calls the
-        # cores belong to the Rust stages (estimate_many's threads).
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         providers = ["CPUExecutionProvider"]
         try:
             self._encoder = ort.InferenceSession(blobs["encoder.onnx"], options, providers=providers)
@@ -89,20 +93,23 @@ class Encoder:
         when these networks ship none."""
         return self.scene_confidence if with_scene else self.confidence
 
-    def encode(self, maps: np.ndarray, batch: int = 128) -> tuple[np.ndarray, np.ndarray]:
-        """(B, M, 3) maps → codes (B, code_size) unit float32, spectra (B, spectrum_size) float32."""
+    def encode(self, maps: np.ndarray, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        """(B, M, 3) maps → codes (B, code_size) unit float32, spectra (B, spectrum_size) float32.
+        Chunks of at most ``batch`` maps run on ``threads`` threads; each
+        map's result is the same whatever the chunks."""
         maps = np.ascontiguousarray(maps, dtype=np.float32)
         if maps.ndim != 3 or maps.shape[1:] != (self.map_points, 3):
             raise ValueError(f"maps must have shape (B, {self.map_points}, 3), got {maps.shape}")
-        codes, spectra = [], []
-        for start in range(0, len(maps), batch):
-            chunk = maps[start : start + batch]
-            groups = _core.map_neighbours(chunk, self.centres, self.neighbours).astype(np.int64)
-            code, spectrum = self._encoder.run(None, {"maps": chunk, "neighbours": groups})
-            codes.append(code)
-            spectra.append(spectrum)
-        if not codes:
+        if not len(maps):
             return np.zeros((0, self.code_size), np.float32), np.zeros((0, self.spectrum_size), np.float32)
+        size = max(1, min(batch, -(-len(maps) // self.threads)))
+        chunks = [maps[start : start + size] for start in range(0, len(maps), size)]
+
+        def run(i: int) -> list[np.ndarray]:
+            groups = _core.map_neighbours(chunks[i], self.centres, self.neighbours).astype(np.int64)
+            return self._encoder.run(None, {"maps": chunks[i], "neighbours": groups})
+
+        codes, spectra = zip(*each(run, len(chunks), self.threads))
         return np.concatenate(codes), np.concatenate(spectra)
 
     def in_plane_angles(self, observed: np.ndarray, candidates: np.ndarray) -> np.ndarray:

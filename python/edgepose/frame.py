@@ -7,7 +7,7 @@ It does what :func:`edgepose.estimate` does per object given the frame
 (``estimate(cloud, codebook, depth=depth, K=K)``: poses are checked against
 the scene around each object too), but shares the
 frame's work: the depth image is checked and converted once, the objects'
-maps are encoded in one ONNX call, and the objects are searched and refined
+maps are encoded as one batch, and the objects are searched and refined
 in parallel threads (the Rust core and onnxruntime release the GIL). The
 poses equal :func:`edgepose.estimate`'s on each object's masked cloud and the frame up to
 the floating-point order of a batched encoding.
@@ -17,14 +17,9 @@ Units are metres; camera frames follow OpenCV; poses are ``T_cam_obj``.
 
 from __future__ import annotations
 
-import itertools
-import os
-import threading
 import time
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
 
 import numpy as np
 
@@ -37,8 +32,7 @@ from edgepose.search import Laps
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
 from edgepose.stages import Query, query_of_cleaned
 from edgepose.track import Tracker
-
-T = TypeVar("T")
+from edgepose.workers import each
 
 #: Objects searched in parallel already share the cores: each pose's coarse
 #: ICPs run one after another and its flip rival is found after its polish,
@@ -61,7 +55,7 @@ class FramePoses:
     once per process, is not counted)."""
     timings: dict = field(default_factory=dict)
     """Seconds per shared step: ``queries`` (clouds and stage 1, all
-    objects), ``encode`` (the one batched ONNX call), ``search`` (stages 2–5
+    objects), ``encode`` (the batch of maps), ``search`` (stages 2–5
     and the confidence, all objects), ``total``."""
 
     def __len__(self) -> int:
@@ -114,7 +108,7 @@ def estimate_many(
 
     search_settings = settings.with_(**ONE_CORE_EACH) if workers > 1 else settings
     started = time.perf_counter()
-    queries, laps, errors = zip(*_each(prepared, len(objects), workers)) if objects else ((), (), ())
+    queries, laps, errors = zip(*each(prepared, len(objects), workers)) if objects else ((), (), ())
     timings["queries"] = time.perf_counter() - started
     started = time.perf_counter()
     usable = [i for i, q in enumerate(queries) if q is not None]
@@ -132,7 +126,7 @@ def estimate_many(
         laps[i].clock = now
         return pose_from_query(query, codebooks[i], encoder, refine, search_settings, laps[i], encoded[i])
 
-    poses = tuple(_each(searched, len(objects), workers))
+    poses = tuple(each(searched, len(objects), workers))
     timings["search"] = time.perf_counter() - started
     seconds = time.perf_counter() - t0
     timings["total"] = seconds
@@ -170,53 +164,10 @@ def track_many(
         except EdgePoseError as e:
             return None, e
 
-    results = _each(updated, len(objects), workers)
+    results = each(updated, len(objects), workers)
     poses, errors = zip(*results) if results else ((), ())
     seconds = time.perf_counter() - t0
     return FramePoses(tuple(poses), tuple(errors), seconds, {"total": seconds})
-
-
-def _each(work: Callable[[int], T], count: int, workers: int) -> list[T]:
-    """``[work(i) for i in range(count)]``, shared by this thread and
-    ``workers - 1`` pool threads, each taking the next ``i`` when done with
-    its last (the work releases the GIL in the core). This thread starts at
-    once, and a pool thread that has not woken by the time the work is done
-    is not waited for: waking one can take longer than a tracked object.
-    The first exception is raised once every thread is done."""
-    results: list[Any] = [None] * count
-    indices = itertools.count()  # next() is atomic: each i is taken once
-
-    def take() -> None:
-        while (i := next(indices)) < count:
-            results[i] = work(i)
-
-    helpers = [_pool(workers - 1).submit(take) for _ in range(min(workers, count) - 1)]
-    try:
-        take()
-    finally:
-        running = [helper for helper in helpers if not helper.cancel()]
-        for helper in running:
-            helper.exception()  # waits for it
-    for helper in running:
-        helper.result()
-    return results
-
-
-_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
-_POOLS_LOCK = threading.Lock()
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """A pool of ``threads`` threads that every :func:`estimate_many` and
-    :func:`track_many` call of this process shares: started once, as the
-    Rust core's threads are, since starting and joining threads for each
-    frame costs a tracked frame's share of a millisecond. A forked child,
-    whose parent's threads are not there, starts its own."""
-    key = (os.getpid(), threads)
-    with _POOLS_LOCK:
-        if key not in _POOLS:
-            _POOLS[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="edgepose")
-        return _POOLS[key]
 
 
 def _checked_objects(
