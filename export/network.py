@@ -80,12 +80,16 @@ class Encoder(nn.Module):
         dist = torch.sqrt((d * d).sum(-1) + 1e-12)
         own = torch.stack([r, z], dim=-1)
         edge = torch.cat([torch.stack([dx, dy, dz, dist], dim=-1), own.unsqueeze(2).expand(-1, -1, NEIGHBOURS, -1)], -1)
-        local = self.local(edge * 4.0).amax(dim=2)  # ×4: neighbour offsets are ~0.1 in unit scale
-        features = self.point(torch.cat([local, own], dim=-1))
+        # The layers see rows of one matrix (a 2-D input exports as Gemm,
+        # which onnxruntime fuses with its bias and ReLU: the same numbers).
+        local = self.local((edge * 4.0).reshape(-1, edge.shape[-1]))  # ×4: neighbour offsets are ~0.1 in unit scale
+        local = local.reshape(b, CENTRES, NEIGHBOURS, -1).amax(dim=2)
+        point_in = torch.cat([local, own], dim=-1)
+        features = self.point(point_in.reshape(-1, point_in.shape[-1])).reshape(b, CENTRES, -1)
 
         code = F.normalize(self.code(features.amax(dim=1)), dim=-1)
 
-        w = self.weights(features)  # (B, CENTRES, CHANNELS)
+        w = self.weights(features.reshape(b * CENTRES, -1)).reshape(b, CENTRES, CHANNELS)
         cos_m, sin_m = harmonics(cos_phi, sin_phi)  # (B, CENTRES, HARMONICS)
         real = torch.einsum("bnc,bnm->bcm", w, cos_m) / CENTRES
         imag = torch.einsum("bnc,bnm->bcm", w, sin_m) / CENTRES

@@ -6,7 +6,10 @@ modules, then export and parity-check as training does.
 
 Used when a change moves work out of the graph but keeps the network's
 arithmetic (the neighbour grouping moved into the Rust core this way); the
-manifest keeps the original training record.
+manifest keeps the original training record. When the new encoder gives
+the source's codes and spectra bit for bit on a set of test maps, the
+manifest keeps the source's fingerprint too, so codebooks built before
+stay valid; otherwise they must be rebuilt (it says so).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from export.network import Encoder, InPlaneRotation
+from export.network import MAP_POINTS, Encoder, InPlaneRotation
 from export.train import MODELS_DIR, export_onnx, write_manifest
 
 
@@ -60,11 +63,36 @@ def main(argv: list[str] | None = None) -> int:
     encoder, irr = Encoder(), InPlaneRotation()
     load_into(encoder, weights_from_onnx(args.source / "encoder.onnx"))
     load_into(irr, weights_from_onnx(args.source / "irr.onnx"))
+    before = parity_codes(args.source)
     hashes = export_onnx(encoder, irr, args.out)
     # Same weights, same outputs: the confidence model fitted for them still holds.
     manifest = write_manifest(args.out, hashes, encoder, irr, source["training"], source.get("confidence"))
+    same = all(np.array_equal(a, b) for a, b in zip(before, parity_codes(args.out)))
+    if same:  # codebooks built with the source's encoder stay valid
+        fingerprint = source.get("fingerprint", source["files"]["encoder.onnx"])
+        write_manifest(args.out, hashes, encoder, irr, source["training"], source.get("confidence"), fingerprint)
     print(f"re-exported to {args.out}: {manifest['parameters']['total']} parameters", flush=True)
+    if not same:
+        print("the codes differ from the source's in the last bits: rebuild every codebook", flush=True)
     return 0
+
+
+def parity_codes(models_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Codes and spectra of the encoder in ``models_dir`` for fixed random
+    maps of several sizes and batch shapes (none of them a benchmark object)."""
+    from edgepose.encoder import Encoder as Runtime
+
+    rng = np.random.default_rng(20261202)
+    maps = np.concatenate(
+        [(rng.normal(size=(16, MAP_POINTS, 3)) * scale).astype(np.float32) for scale in (0.05, 0.4, 1.0, 3.0)]
+    )
+    runtime = Runtime(models_dir, threads=1)
+    one = [runtime.encode(m[None]) for m in maps[:8]]
+    whole = runtime.encode(maps, batch=64)
+    return (
+        np.concatenate([np.concatenate([c for c, _ in one]), whole[0]]),
+        np.concatenate([np.concatenate([s for _, s in one]), whole[1]]),
+    )
 
 
 if __name__ == "__main__":

@@ -147,14 +147,19 @@ def write_manifest(
     irr: InPlaneRotation,
     training: dict,
     confidence: dict | None = None,
+    fingerprint: str | None = None,
 ) -> dict:
     """``manifest.json`` beside the exported networks: hashes, sizes, the
     inputs the runtime must prepare, how the weights were trained and, when
     given, ``Pose.confidence``'s model fitted for these networks
-    (``python -m export.confidence --write``)."""
+    (``python -m export.confidence --write``). ``fingerprint`` names the
+    codes the encoder gives (what a codebook records): the new encoder
+    file's sha256 unless a re-export gives an earlier file's codes bit for
+    bit (:mod:`export.reexport`)."""
     manifest = {
         "format": 2,
         "files": hashes,
+        "fingerprint": fingerprint or hashes["encoder.onnx"],
         "parameters": {
             "encoder": parameter_count(encoder),
             "irr": parameter_count(irr),

@@ -72,6 +72,25 @@ def test_reexport_keeps_the_shipped_networks_arithmetic(tmp_path):
     np.testing.assert_allclose(
         shipped.in_plane_angles(spectra[0], spectra), again.in_plane_angles(spectra[0], spectra), atol=1e-5
     )
+    # The same codes bit for bit (the re-export only changes the graph's
+    # layout): the fingerprint stays, and so do the codebooks built before.
+    assert again.fingerprint == shipped.fingerprint
+
+
+def test_a_reexport_whose_codes_differ_gets_its_own_fingerprint(tmp_path, monkeypatch):
+    from export import reexport
+
+    real = reexport.parity_codes
+    calls = iter([0, 1])
+
+    def nudged(models_dir):
+        codes, spectra = real(models_dir)
+        return codes + np.float32(next(calls) * 1e-6), spectra
+
+    monkeypatch.setattr(reexport, "parity_codes", nudged)
+    assert reexport.main(["--out", str(tmp_path)]) == 0
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert Encoder(tmp_path).fingerprint == manifest["files"]["encoder.onnx"] != Encoder().fingerprint
 
 
 def test_training_pairs_carry_the_true_in_plane_angle(monkeypatch):

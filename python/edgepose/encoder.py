@@ -5,9 +5,10 @@
 * ``in_plane_angles(observed, candidates)`` → the turn about the optical axis
   carrying each candidate map onto the observed one (the IRR head).
 
-The models live in ``edgepose/models/`` with a manifest of their sha256; the
-encoder's hash is the *fingerprint* a codebook records, so codes made by one
-encoder are never compared with another's.
+The models live in ``edgepose/models/`` with a manifest of their sha256 and
+the *fingerprint* a codebook records, so codes made by one encoder are never
+compared with another's: the encoder file's hash, or the hash of the file a
+re-export replaced when it gives the same codes bit for bit.
 """
 
 from __future__ import annotations
@@ -55,7 +56,9 @@ class Encoder:
                 digest = hashlib.sha256(blob).hexdigest()
                 if digest != manifest["files"].get(name):
                     raise ModelFilesError(f"{models_dir / name}: sha256 {digest[:12]}… differs from its manifest")
-            self.fingerprint: str = manifest["files"]["encoder.onnx"]
+            # The codes' name: the encoder file's sha256 when exported, kept
+            # by a re-export that gives the same codes bit for bit.
+            self.fingerprint: str = manifest.get("fingerprint", manifest["files"]["encoder.onnx"])
             self.map_points: int = int(manifest["inputs"]["map_points"])
             self.code_size: int = int(manifest["inputs"]["code_size"])
             self.spectrum_size: int = int(manifest["inputs"]["spectrum_size"])
