@@ -228,8 +228,9 @@ struct CellIndex {
 const LIST_SPACINGS: f32 = 1.0;
 
 /// Cells of [`CandidateLists`] whose centre lies within this many cell sides
-/// of the model get a list (the others hold none).
-const LIST_BAND_CELLS: f64 = 2.0;
+/// of the model get a list (the others hold none): far enough that few
+/// look-ups search the coarse grid's rings (`docs/tuning.md`).
+const LIST_BAND_CELLS: f64 = 4.0;
 
 /// Most cells of the model's grids, whatever the requested side (a degenerate model).
 const MAX_MODEL_CELLS: f64 = 1e6;
@@ -362,7 +363,7 @@ impl Grid {
 /// model point within `r + h`, so its nearest lies within `r + 2h` of the
 /// centre). Cells farther than [`LIST_BAND_CELLS`] from the model hold none,
 /// and so does every cell of a model of more than 65,536 points (lists of
-/// 16-bit indices; the index of a YCB model of 4,096 points holds 0.8–1.5 MB).
+/// 16-bit indices).
 struct CandidateLists {
     grid: Grid,
     /// Cell `c`'s list is `items[starts[c]..starts[c + 1]]` (empty: none).
