@@ -64,6 +64,7 @@ def test_version_proves_the_core_and_the_networks_load():
     assert "compiled core loaded" in out.stdout
     assert manifest["files"]["encoder.onnx"][:12] in out.stdout
     assert manifest["files"]["irr.onnx"][:12] in out.stdout
+    assert f"fingerprint {manifest.get('fingerprint', manifest['files']['encoder.onnx'])[:12]}" in out.stdout
     assert "onnxruntime 1." in out.stdout
 
 

@@ -286,7 +286,8 @@ def test_an_encoder_other_than_the_codebooks_is_refused(drill, tmp_path):
     graph.doc_string = "another encoder"
     onnx.save(graph, str(tmp_path / "models" / "encoder.onnx"))
     manifest = json.loads((tmp_path / "models" / "manifest.json").read_text())
-    manifest["files"]["encoder.onnx"] = hashlib.sha256((tmp_path / "models" / "encoder.onnx").read_bytes()).hexdigest()
+    digest = hashlib.sha256((tmp_path / "models" / "encoder.onnx").read_bytes()).hexdigest()
+    manifest["files"]["encoder.onnx"] = manifest["fingerprint"] = digest  # as an export writes it
     (tmp_path / "models" / "manifest.json").write_text(json.dumps(manifest))
     other = Encoder(tmp_path / "models")
     with pytest.raises(edgepose.CodebookError, match="different encoder"):

@@ -72,6 +72,7 @@ def version_text() -> str:
             f"core        {_core.__name__} (compiled core loaded from {Path(_core.__file__).name})",
             f"networks    encoder.onnx {files['encoder.onnx'][:12]}, irr.onnx {files['irr.onnx'][:12]} "
             f"({manifest['parameters']['total']:,} parameters, sha256 checked, code size {encoder.code_size})",
+            f"codes       fingerprint {encoder.fingerprint[:12]} (what a codebook must record)",
             f"onnxruntime {onnxruntime.__version__}",
         ]
     )
