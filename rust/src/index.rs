@@ -377,20 +377,28 @@ impl CandidateLists {
         let (cell, dims, count) = (grid.cell, grid.dims, grid.count());
         let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
         let band = LIST_BAND_CELLS * cell as f64;
-        // Cells within `band` of some model point: those in the cube of
-        // cells `reach` around its cell (the rest need no look-up).
+        // Cells whose centre lies within `band` of some model point: its
+        // centre is within `band + h` of that point's cell's centre, so their
+        // offset (in cells) is at most that long, with slack for rounding
+        // (the rest need no look-up).
         let mut near = vec![false; count];
-        let reach = band.div_euclid(cell as f64) as i32 + 1;
+        let limit = (band + half_diagonal) / cell as f64 + 0.01;
+        let reach = limit.ceil() as i32;
+        let offsets: Vec<[i32; 3]> = (-reach..=reach)
+            .flat_map(|x| {
+                (-reach..=reach).flat_map(move |y| (-reach..=reach).map(move |z| [x, y, z]))
+            })
+            .filter(|o| ((o[0] * o[0] + o[1] * o[1] + o[2] * o[2]) as f64) <= limit * limit)
+            .collect();
         let short = points.len() <= 1 << 16; // indices fit 16 bits
         for p in points.iter().filter(|_| short) {
             let g = grid
                 .coordinates(p)
                 .expect("model points lie inside the grid");
-            for x in (g[0] - reach).max(0)..=(g[0] + reach).min(dims[0] - 1) {
-                for y in (g[1] - reach).max(0)..=(g[1] + reach).min(dims[1] - 1) {
-                    for z in (g[2] - reach).max(0)..=(g[2] + reach).min(dims[2] - 1) {
-                        near[grid.flat([x, y, z])] = true;
-                    }
+            for o in &offsets {
+                let at: [i32; 3] = std::array::from_fn(|a| g[a] + o[a]);
+                if (0..3).all(|a| at[a] >= 0 && at[a] < dims[a]) {
+                    near[grid.flat(at)] = true;
                 }
             }
         }
