@@ -129,6 +129,27 @@ def test_the_model_is_built_once_and_shared_by_maps_and_index():
     assert len(_core.ModelIndex(model)) == 512
 
 
+def test_an_index_with_other_normals_answers_as_one_built_for_them():
+    model = _box_model()
+    index = _core.ModelIndex(model)
+    # The same points with other normals.
+    rng = np.random.default_rng(0)
+    normals = model.normals + rng.normal(0, 0.05, model.normals.shape).astype(np.float32)
+    normals = np.ascontiguousarray(normals / np.linalg.norm(normals, axis=1, keepdims=True), dtype=np.float32)
+    tilted = _core.StandardModel(model.points, normals, model.centre, model.scale, model.diameter, model.spacing)
+    shared, fresh = index.with_model(tilted), _core.ModelIndex(tilted)
+    points = np.ascontiguousarray(model.points[::4] + rng.normal(0, 0.003, (128, 3)).astype(np.float32))
+    R = np.stack([np.eye(3), edgepose.fibonacci_viewpoints(3).rotations[1]])
+    t = np.array([[0.0, 0.0, 0.0], [0.002, 0.0, -0.001]])
+    np.testing.assert_array_equal(shared.distances(points, R, t, True), fresh.distances(points, R, t, True))
+    assert not np.array_equal(shared.distances(points, R, t, True), index.distances(points, R, t, True))
+    moved = _core.StandardModel(
+        model.points + np.float32(1e-6), model.normals, model.centre, model.scale, model.diameter, model.spacing
+    )
+    with pytest.raises(ValueError, match="points differ"):
+        index.with_model(moved)
+
+
 def test_the_core_raises_edgeposes_own_exceptions():
     model = _box_model()
     index = _core.ModelIndex(model)

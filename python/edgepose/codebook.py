@@ -31,7 +31,7 @@ import stat
 import tempfile
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -95,9 +95,13 @@ class Codebook:
     index: _core.ModelIndex = field(init=False, repr=False)
     doubtful_turns: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)
     """The model's turns the confidence tests a pose against (:func:`edgepose.symmetry.doubtful_turns`)."""
+    points_index: InitVar[_core.ModelIndex | None] = None
+    """An index of the same model points (a build's symmetry search made
+    one) whose kd-tree and cells ``index`` shares rather than builds again."""
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "index", _core.ModelIndex(self.model.core))
+    def __post_init__(self, points_index: _core.ModelIndex | None) -> None:
+        index = _core.ModelIndex(self.model.core) if points_index is None else points_index.with_model(self.model.core)
+        object.__setattr__(self, "index", index)
         object.__setattr__(self, "doubtful_turns", doubtful_turns(self.model, self.symmetry))
 
     def __len__(self) -> int:
@@ -192,9 +196,15 @@ class Codebook:
 
     @classmethod
     def _from_parts(
-        cls, tensors: dict[str, np.ndarray], metadata: dict[str, str], encoder: Encoder, name: str
+        cls,
+        tensors: dict[str, np.ndarray],
+        metadata: dict[str, str],
+        encoder: Encoder,
+        name: str,
+        points_index: _core.ModelIndex | None = None,
     ) -> Codebook:
-        """A codebook from stored arrays and header, after checking both."""
+        """A codebook from stored arrays and header, after checking both
+        (``points_index``: see :attr:`Codebook.points_index`)."""
         _check_header(tensors, metadata, encoder, name)
         try:
             info = json.loads(metadata["model"])
@@ -258,6 +268,7 @@ class Codebook:
                 source_sha256=metadata.get("source_sha256"),
                 symmetry=Symmetry.from_json(json.loads(metadata["symmetry"])),
                 symmetry_search=metadata.get("symmetry_search"),
+                points_index=points_index,
             )
         except KeyError as e:
             raise CodebookError(f"{name}: missing {e} in the codebook") from None
@@ -313,7 +324,10 @@ def build_codebook(
     t2 = time.perf_counter()
     codes, spectra = encoder.encode(maps.points)
     t3 = time.perf_counter()
-    symmetry = detect_symmetry(model)
+    # One kd-tree and grid of cells over the model's points serves the
+    # symmetry search and both codebooks below.
+    index = _core.ModelIndex(model.core)
+    symmetry = detect_symmetry(model, index)
     t_sym = time.perf_counter()
     built = Codebook(
         model,
@@ -326,10 +340,11 @@ def build_codebook(
         source_sha256,
         symmetry,
         SEARCH_FINGERPRINT,
+        points_index=index,
     )
     # Through the stored dtypes, so a built codebook and its saved copy give identical poses.
     tensors = built._tensors()
-    stored = Codebook._from_parts(tensors, built._metadata(tensors), encoder, "new codebook")
+    stored = Codebook._from_parts(tensors, built._metadata(tensors), encoder, "new codebook", index)
     t4 = time.perf_counter()
     object.__setattr__(
         stored,

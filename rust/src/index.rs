@@ -7,7 +7,7 @@
 //! kd-tree the rest.
 
 use std::num::NonZero;
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
@@ -29,8 +29,10 @@ pub(crate) type ModelTree = ImmutableKdTree<f32, u32, 3, 8>;
 /// the points (model frame, metres), built once per codebook load.
 /// Immutable, so many threads may query it at once.
 pub struct ModelIndex {
-    tree: ModelTree,
-    cells: CellIndex,
+    /// The kd-tree and cells depend on the points alone, so indexes of the
+    /// same points with other normals share them ([`ModelIndex::with_normals`]).
+    tree: Arc<ModelTree>,
+    cells: Arc<CellIndex>,
     points: Vec<Point3>,
     normals: Vec<Point3>,
     /// Built on the first [`ModelIndex::pair_poses`]: only doubtful views
@@ -65,9 +67,23 @@ impl ModelIndex {
         let tree = ModelTree::new_from_slice(&points);
         let cells = CellIndex::new(&points, mean_spacing(&tree, &points), &tree);
         Self {
-            tree,
-            cells,
+            tree: Arc::new(tree),
+            cells: Arc::new(cells),
             points,
+            normals,
+            pairs: OnceLock::new(),
+        }
+    }
+
+    /// The index of these points with other `normals` (one per point), sharing
+    /// this one's kd-tree and cells: a codebook build searches symmetries with
+    /// the model's normals and stores them rounded, over the same points.
+    pub fn with_normals(&self, normals: Vec<Point3>) -> Self {
+        assert_eq!(self.points.len(), normals.len(), "one normal per point");
+        Self {
+            tree: Arc::clone(&self.tree),
+            cells: Arc::clone(&self.cells),
+            points: self.points.clone(),
             normals,
             pairs: OnceLock::new(),
         }

@@ -145,6 +145,28 @@ impl PyModelIndex {
         })
     }
 
+    /// This index with `model`'s normals, sharing its kd-tree and cells
+    /// (no rebuild): `model` must have exactly these points, bit for bit.
+    fn with_model(&self, model: &PyStandardModel) -> PyResult<Self> {
+        guarded(|| {
+            let same = model.inner.points.len() == self.inner.len()
+                && model
+                    .inner
+                    .points
+                    .iter()
+                    .zip(self.inner.points())
+                    .all(|(a, b)| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()));
+            if !same {
+                return Err(PyValueError::new_err(
+                    "the model's points differ from the index's: build a ModelIndex of it instead",
+                ));
+            }
+            Ok(Self {
+                inner: Arc::new(self.inner.with_normals(model.inner.normals.clone())),
+            })
+        })
+    }
+
     fn __len__(&self) -> usize {
         self.inner.len()
     }
