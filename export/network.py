@@ -6,9 +6,11 @@ in unit-sphere scale. The camera may have turned by any angle θ about z, so:
 * the **backbone** computes per-point features that do not change under such
   a turn, by construction: each centre point sees its neighbours' offsets in
   its own radial frame (rotated by −φ, its polar angle), plus its radius and
-  depth. The groups (each centre's kNN) are an input of the graph: the Rust
-  core computes them at run time (a top-k inside ONNX cost a third of the
-  encoder's time), :func:`neighbour_groups` during training.
+  depth (:func:`map_features`). Those features are the graph's inputs: the
+  Rust core computes them at run time, groups (each centre's kNN) included
+  (inside ONNX, a top-k and dozens of small operations cost two thirds of
+  the encoder's time); :func:`neighbour_groups` and :func:`map_features`
+  during training.
 * the **code head** max-pools those features into a unit code: identical for
   every in-plane turn, and trained (triplet loss on cosine, margin 0.1) to
   differ between viewpoints.
@@ -47,7 +49,11 @@ def mlp(*sizes: int) -> nn.Sequential:
 
 
 class Encoder(nn.Module):
-    """maps (B, N, 3) → code (B, CODE_SIZE) unit vectors, spectrum (B, SPECTRUM_SIZE)."""
+    """maps (B, N, 3) → code (B, CODE_SIZE) unit vectors, spectrum (B, SPECTRUM_SIZE).
+
+    The exported graph is :meth:`forward`, from the maps' features
+    (:func:`map_features`; at run time the Rust core computes the same
+    ones, bit for bit); training calls :meth:`encode` on maps."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -56,33 +62,19 @@ class Encoder(nn.Module):
         self.code = nn.Sequential(nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, CODE_SIZE))
         self.weights = nn.Linear(256, CHANNELS)
 
-    def forward(self, maps: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode(self, maps: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``maps`` (B, N, 3) float; ``neighbours`` (B, CENTRES, NEIGHBOURS)
-        int64: each centre's nearest map points (:func:`neighbour_groups`; at
-        run time the Rust core computes the same groups)."""
-        b, n, _ = maps.shape
-        # Maps are in farthest-point order, so the first CENTRES points are an
-        # even subset: use them as group centres.
-        centres = maps[:, :CENTRES, :]
-        x, y, z = centres[..., 0], centres[..., 1], centres[..., 2]
-        r = torch.sqrt(x * x + y * y + 1e-8)
-        cos_phi, sin_phi = x / r, y / r
+        int64: each centre's nearest map points (:func:`neighbour_groups`)."""
+        return self(*map_features(maps, neighbours))
 
-        offset = torch.arange(b, device=maps.device).view(b, 1, 1) * n
-        grouped = maps.reshape(b * n, 3)[(neighbours + offset).reshape(-1)]
-        d = grouped.reshape(b, CENTRES, NEIGHBOURS, 3) - centres.unsqueeze(2)
-
-        # Offsets in each centre's radial frame: unchanged by a turn about z.
-        c, s = cos_phi.unsqueeze(-1), sin_phi.unsqueeze(-1)
-        dx = c * d[..., 0] + s * d[..., 1]
-        dy = -s * d[..., 0] + c * d[..., 1]
-        dz = d[..., 2]
-        dist = torch.sqrt((d * d).sum(-1) + 1e-12)
-        own = torch.stack([r, z], dim=-1)
-        edge = torch.cat([torch.stack([dx, dy, dz, dist], dim=-1), own.unsqueeze(2).expand(-1, -1, NEIGHBOURS, -1)], -1)
+    def forward(
+        self, edge: torch.Tensor, own: torch.Tensor, cos_m: torch.Tensor, sin_m: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The maps' features (:func:`map_features`) → code, spectrum."""
+        b = edge.shape[0]
         # The layers see rows of one matrix (a 2-D input exports as Gemm,
         # which onnxruntime fuses with its bias and ReLU: the same numbers).
-        local = self.local((edge * 4.0).reshape(-1, edge.shape[-1]))  # ×4: neighbour offsets are ~0.1 in unit scale
+        local = self.local(edge.reshape(-1, edge.shape[-1]))
         local = local.reshape(b, CENTRES, NEIGHBOURS, -1).amax(dim=2)
         point_in = torch.cat([local, own], dim=-1)
         features = self.point(point_in.reshape(-1, point_in.shape[-1])).reshape(b, CENTRES, -1)
@@ -90,17 +82,54 @@ class Encoder(nn.Module):
         code = F.normalize(self.code(features.amax(dim=1)), dim=-1)
 
         w = self.weights(features.reshape(b * CENTRES, -1)).reshape(b, CENTRES, CHANNELS)
-        cos_m, sin_m = harmonics(cos_phi, sin_phi)  # (B, CENTRES, HARMONICS)
         real = torch.einsum("bnc,bnm->bcm", w, cos_m) / CENTRES
         imag = torch.einsum("bnc,bnm->bcm", w, sin_m) / CENTRES
         spectrum = F.normalize(torch.stack([real, imag], dim=-1).reshape(b, SPECTRUM_SIZE), dim=-1)
         return code, spectrum
 
 
+def map_features(
+    maps: torch.Tensor, neighbours: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What the encoder's layers see of maps (B, N, 3) with their neighbour
+    groups (B, CENTRES, NEIGHBOURS), unchanged by a turn about z:
+
+    * ``edge`` (B, CENTRES, NEIGHBOURS, 6): each neighbour's offset from its
+      centre in the centre's radial frame (rotated by −φ, its polar angle),
+      its distance, and the centre's radius and depth, all × 4 (neighbour
+      offsets are ~0.1 in unit scale);
+    * ``own`` (B, CENTRES, 2): each centre's radius and depth;
+    * ``cos_m``, ``sin_m`` (B, CENTRES, HARMONICS): cos(mφ), sin(mφ).
+
+    The Rust core's ``map_features`` computes the same f32 operations in
+    the same order."""
+    b, n, _ = maps.shape
+    # Maps are in farthest-point order, so the first CENTRES points are an
+    # even subset: use them as group centres.
+    centres = maps[:, :CENTRES, :]
+    x, y, z = centres[..., 0], centres[..., 1], centres[..., 2]
+    r = torch.sqrt(x * x + y * y + 1e-8)
+    cos_phi, sin_phi = x / r, y / r
+
+    offset = torch.arange(b, device=maps.device).view(b, 1, 1) * n
+    grouped = maps.reshape(b * n, 3)[(neighbours + offset).reshape(-1)]
+    d = grouped.reshape(b, CENTRES, NEIGHBOURS, 3) - centres.unsqueeze(2)
+
+    c, s = cos_phi.unsqueeze(-1), sin_phi.unsqueeze(-1)
+    dx = c * d[..., 0] + s * d[..., 1]
+    dy = -s * d[..., 0] + c * d[..., 1]
+    dz = d[..., 2]
+    dist = torch.sqrt((d * d).sum(-1) + 1e-12)
+    own = torch.stack([r, z], dim=-1)
+    edge = torch.cat([torch.stack([dx, dy, dz, dist], dim=-1), own.unsqueeze(2).expand(-1, -1, NEIGHBOURS, -1)], -1)
+    cos_m, sin_m = harmonics(cos_phi, sin_phi)
+    return edge * 4.0, own, cos_m, sin_m
+
+
 def neighbour_groups(maps: torch.Tensor) -> torch.Tensor:
     """(B, CENTRES, NEIGHBOURS) int64: the NEIGHBOURS nearest map points of
     each of the first CENTRES points of each map (B, N, 3). Training's
-    counterpart of the Rust core's ``map_neighbours``."""
+    counterpart of the Rust core's groups (``map_features``)."""
     centres = maps[:, :CENTRES, :]
     sq = ((centres.unsqueeze(2) - maps.unsqueeze(1)) ** 2).sum(-1)
     return torch.topk(sq, NEIGHBOURS, dim=2, largest=False).indices

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from export.network import MAP_POINTS, Encoder, InPlaneRotation
+from export.network import CENTRES, HARMONICS, MAP_POINTS, NEIGHBOURS, Encoder, InPlaneRotation, neighbour_groups
 from export.train import MODELS_DIR, export_onnx, write_manifest
 
 
@@ -79,16 +79,30 @@ def main(argv: list[str] | None = None) -> int:
 
 def parity_codes(models_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     """Codes and spectra of the encoder in ``models_dir`` for fixed random
-    maps of several sizes and batch shapes (none of them a benchmark object)."""
-    from edgepose.encoder import Encoder as Runtime
+    maps of several sizes and batch shapes (none of them a benchmark object).
+    The graph is fed by its inputs' names, so an encoder exported before its
+    features moved into the core (it takes maps and neighbour groups) can be
+    checked against one exported now."""
+    import onnxruntime as ort
+    from edgepose import _core
 
     rng = np.random.default_rng(20261202)
     maps = np.concatenate(
         [(rng.normal(size=(16, MAP_POINTS, 3)) * scale).astype(np.float32) for scale in (0.05, 0.4, 1.0, 3.0)]
     )
-    runtime = Runtime(models_dir, threads=1)
-    one = [runtime.encode(m[None]) for m in maps[:8]]
-    whole = runtime.encode(maps, batch=64)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    session = ort.InferenceSession(str(models_dir / "encoder.onnx"), options, providers=["CPUExecutionProvider"])
+    names = tuple(i.name for i in session.get_inputs())
+
+    def encode(batch: np.ndarray) -> list[np.ndarray]:
+        if names == ("maps", "neighbours"):
+            groups = neighbour_groups(torch.from_numpy(batch)).numpy()
+            return session.run(None, {"maps": batch, "neighbours": groups})
+        return session.run(None, dict(zip(names, _core.map_features(batch, CENTRES, NEIGHBOURS, HARMONICS))))
+
+    one = [encode(m[None]) for m in maps[:8]]
+    whole = encode(maps)
     return (
         np.concatenate([np.concatenate([c for c, _ in one]), whole[0]]),
         np.concatenate([np.concatenate([s for _, s in one]), whole[1]]),

@@ -23,11 +23,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from edgepose.encoder import ENCODER_INPUTS
 
 from export import data, shapes
 from export.network import (
     CENTRES,
     CODE_SIZE,
+    HARMONICS,
     MAP_POINTS,
     NEIGHBOURS,
     SPECTRUM_SIZE,
@@ -48,8 +50,8 @@ OPSET = 17
 def losses(encoder: Encoder, irr: InPlaneRotation, batch: data.Batch) -> dict[str, torch.Tensor]:
     observed = torch.from_numpy(batch.observed)
     codebook = torch.from_numpy(batch.codebook)
-    code_o, spec_o = encoder(observed, neighbour_groups(observed))
-    code_b, spec_b = encoder(codebook, neighbour_groups(codebook))
+    code_o, spec_o = encoder.encode(observed, neighbour_groups(observed))
+    code_b, spec_b = encoder.encode(codebook, neighbour_groups(codebook))
 
     sim = code_o @ code_b.T  # (B, B) cosine similarities
     positive = sim.diagonal().unsqueeze(1)
@@ -94,21 +96,21 @@ def batches(models, seed: int, start_step: int, shapes_per_batch: int, views: in
 def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, str]:
     """Writes encoder.onnx and irr.onnx (dynamic batch, self-contained) and
     checks onnxruntime against torch on random inputs; the encoder's
-    neighbour groups come from the Rust core, as at run time."""
+    inputs (the maps' features) come from the Rust core, as at run time."""
     import onnxruntime as ort
     from edgepose import _core
 
     out.mkdir(parents=True, exist_ok=True)
     encoder.eval(), irr.eval()
     maps = torch.randn(4, MAP_POINTS, 3) * 0.4
-    groups = torch.from_numpy(_core.map_neighbours(maps.numpy(), CENTRES, NEIGHBOURS).astype(np.int64))
+    features = _core.map_features(maps.numpy(), CENTRES, NEIGHBOURS, HARMONICS)
     torch.onnx.export(
         encoder,
-        (maps, groups),
+        tuple(torch.from_numpy(f) for f in features),
         out / "encoder.onnx",
-        input_names=["maps", "neighbours"],
+        input_names=list(ENCODER_INPUTS),
         output_names=["code", "spectrum"],
-        dynamic_axes={"maps": {0: "batch"}, "neighbours": {0: "batch"}, "code": {0: "batch"}, "spectrum": {0: "batch"}},
+        dynamic_axes={name: {0: "batch"} for name in (*ENCODER_INPUTS, "code", "spectrum")},
         opset_version=OPSET,
         dynamo=False,
     )
@@ -124,10 +126,10 @@ def export_onnx(encoder: Encoder, irr: InPlaneRotation, out: Path) -> dict[str, 
         dynamo=False,
     )
     with torch.no_grad():
-        code, spectrum = encoder(maps, groups)
+        code, spectrum = encoder.encode(maps, neighbour_groups(maps))
         angle = irr(observed, candidates)
     enc = ort.InferenceSession(str(out / "encoder.onnx"), providers=["CPUExecutionProvider"])
-    ort_code, ort_spec = enc.run(None, {"maps": maps.numpy(), "neighbours": groups.numpy()})
+    ort_code, ort_spec = enc.run(None, dict(zip(ENCODER_INPUTS, features)))
     rot = ort.InferenceSession(str(out / "irr.onnx"), providers=["CPUExecutionProvider"])
     (ort_angle,) = rot.run(None, {"observed": observed.numpy(), "candidates": candidates.numpy()})
     worst = max(
@@ -157,7 +159,7 @@ def write_manifest(
     file's sha256 unless a re-export gives an earlier file's codes bit for
     bit (:mod:`export.reexport`)."""
     manifest = {
-        "format": 2,
+        "format": 3,
         "files": hashes,
         "fingerprint": fingerprint or hashes["encoder.onnx"],
         "parameters": {
@@ -169,6 +171,7 @@ def write_manifest(
             "map_points": MAP_POINTS,
             "centres": CENTRES,
             "neighbours": NEIGHBOURS,
+            "harmonics": HARMONICS,
             "code_size": CODE_SIZE,
             "spectrum_size": SPECTRUM_SIZE,
         },

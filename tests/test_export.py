@@ -28,10 +28,10 @@ def test_code_is_invariant_and_spectrum_turns_with_the_map():
     encoder, irr = network.Encoder().eval(), network.InPlaneRotation().eval()
     maps = torch.randn(3, network.MAP_POINTS, 3) * 0.4
     with torch.no_grad():
-        code, spectrum = encoder(maps, network.neighbour_groups(maps))
+        code, spectrum = encoder.encode(maps, network.neighbour_groups(maps))
         for theta in (0.3, 2.0, -2.9):
             turned = turn(maps, theta)
-            turned_code, turned_spectrum = encoder(turned, network.neighbour_groups(turned))
+            turned_code, turned_spectrum = encoder.encode(turned, network.neighbour_groups(turned))
             assert torch.allclose(code, turned_code, atol=1e-5)
             # Harmonic m of every channel picks up a phase of m·θ.
             s = spectrum.reshape(3, network.CHANNELS, network.HARMONICS, 2)
@@ -46,16 +46,24 @@ def test_code_is_invariant_and_spectrum_turns_with_the_map():
             assert torch.allclose(found, torch.full_like(found, theta), atol=math.radians(0.5))
 
 
-def test_rust_neighbour_groups_equal_training_groups():
-    # Run time groups come from the Rust core, training's from torch: same sets.
+def test_rust_map_features_equal_training_features():
+    # Run time features come from the Rust core, training's from torch: the
+    # same groups and the same numbers (the core's order of f32 operations
+    # is the exported graph's, which torch need not keep to the last bit).
     from edgepose import _core
 
     maps = torch.randn(6, network.MAP_POINTS, 3) * 0.4
-    rust = _core.map_neighbours(maps.numpy(), network.CENTRES, network.NEIGHBOURS)
-    ours = network.neighbour_groups(maps).numpy()
-    assert rust.shape == ours.shape == (6, network.CENTRES, network.NEIGHBOURS)
-    assert np.array_equal(np.sort(rust, axis=-1), np.sort(ours, axis=-1))
-    assert np.array_equal(rust[:, :, 0], np.broadcast_to(np.arange(network.CENTRES), (6, network.CENTRES)))
+    rust = _core.map_features(maps.numpy(), network.CENTRES, network.NEIGHBOURS, network.HARMONICS)
+    ours = [f.numpy() for f in network.map_features(maps, network.neighbour_groups(maps))]
+    shapes = [(6, network.CENTRES, network.NEIGHBOURS, 6), *[(6, network.CENTRES, w) for w in (2, 8, 8)]]
+    assert [r.shape for r in rust] == [o.shape for o in ours] == shapes
+    # Groups are sets: sort each group's rows the same way before comparing.
+    order = lambda edge: np.take_along_axis(edge, np.argsort(edge[..., 3], axis=-1)[..., None], axis=2)  # noqa: E731
+    np.testing.assert_allclose(order(rust[0]), order(ours[0]), rtol=1e-5, atol=1e-6)
+    for r, o in zip(rust[1:], ours[1:]):
+        np.testing.assert_allclose(r, o, rtol=1e-5, atol=1e-6)
+    # Each centre is its own nearest neighbour: a zero offset comes first.
+    assert np.abs(rust[0][:, :, 0, :3]).max() == 0
 
 
 def test_reexport_keeps_the_shipped_networks_arithmetic(tmp_path):

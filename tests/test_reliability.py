@@ -4,6 +4,7 @@ processes, and huge clouds cost bounded memory."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -189,6 +190,19 @@ def test_altered_network_manifest_is_a_model_files_error(tmp_path):
         edgepose.Encoder(models)
     (models / "manifest.json").write_text("{")
     with pytest.raises(edgepose.ModelFilesError, match="cannot read"):
+        edgepose.Encoder(models)
+
+
+def test_an_encoder_graph_with_other_inputs_is_a_model_files_error(tmp_path):
+    # An encoder exported before the core computed its inputs (or any other
+    # graph) is refused on load, not when the first estimate runs it.
+    models = tmp_path / "models"
+    shutil.copytree(edgepose.encoder.MODELS_DIR, models)
+    shutil.copy(models / "irr.onnx", models / "encoder.onnx")
+    manifest = json.loads((models / "manifest.json").read_text())
+    manifest["files"]["encoder.onnx"] = hashlib.sha256((models / "encoder.onnx").read_bytes()).hexdigest()
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(edgepose.ModelFilesError, match=r"takes inputs \['observed', 'candidates'\].*re-export"):
         edgepose.Encoder(models)
 
 

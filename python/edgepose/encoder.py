@@ -26,6 +26,9 @@ from edgepose.errors import EdgePoseError
 from edgepose.workers import each
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
+#: The encoder graph's inputs, in order: the maps' features the core
+#: computes (``_core.map_features``; ``export/network.py``, ``map_features``).
+ENCODER_INPUTS = ("edge", "own", "cos_m", "sin_m")
 
 
 class ModelFilesError(EdgePoseError):
@@ -65,6 +68,8 @@ class Encoder:
             # Each map's local regions: its first `centres` points and their nearest neighbours.
             self.centres: int = int(manifest["inputs"]["centres"])
             self.neighbours: int = int(manifest["inputs"]["neighbours"])
+            # Harmonics of each centre's polar angle the spectrum is taken over.
+            self.harmonics: int = int(manifest["inputs"]["harmonics"])
             # Pose.confidence's calibrated model, fitted for these networks (None: not shipped).
             self.confidence: ConfidenceModel | None = (
                 ConfidenceModel.from_manifest(manifest["confidence"]) if "confidence" in manifest else None
@@ -89,6 +94,12 @@ class Encoder:
             self._irr = ort.InferenceSession(blobs["irr.onnx"], options, providers=providers)
         except Exception as e:  # onnxruntime raises its own untyped failures
             raise ModelFilesError(f"onnxruntime cannot load the networks in {models_dir}: {e}") from None
+        inputs = tuple(i.name for i in self._encoder.get_inputs())
+        if inputs != ENCODER_INPUTS:
+            raise ModelFilesError(
+                f"{models_dir / 'encoder.onnx'} takes inputs {list(inputs)}, this edgepose gives "
+                f"{list(ENCODER_INPUTS)}: re-export it (python -m export.reexport --source {models_dir})"
+            )
 
     def judge(self, with_scene: bool) -> ConfidenceModel | None:
         """The confidence model for a pose checked against the frame's depth
@@ -109,8 +120,8 @@ class Encoder:
         chunks = [maps[start : start + size] for start in range(0, len(maps), size)]
 
         def run(i: int) -> list[np.ndarray]:
-            groups = _core.map_neighbours(chunks[i], self.centres, self.neighbours).astype(np.int64)
-            return self._encoder.run(None, {"maps": chunks[i], "neighbours": groups})
+            features = _core.map_features(chunks[i], self.centres, self.neighbours, self.harmonics)
+            return self._encoder.run(None, dict(zip(ENCODER_INPUTS, features)))
 
         codes, spectra = zip(*each(run, len(chunks), self.threads))
         return np.concatenate(codes), np.concatenate(spectra)

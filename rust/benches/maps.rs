@@ -6,7 +6,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use rayon::prelude::*;
 
 use edgepose_core::{
-    compute_maps, farthest_point_sample, map_neighbours, neighbours_of_maps, view_map, viewpoints,
+    compute_maps, farthest_point_sample, features_of_maps, map_neighbours, view_map, viewpoints,
     visible_mask, StandardModel,
 };
 
@@ -79,15 +79,19 @@ fn bench_maps(c: &mut Criterion) {
     });
     fps.finish();
 
-    // The encoder's neighbour groups (128 centres × 16 neighbours), per map and for a whole codebook.
+    // The encoder's neighbour groups (128 centres × 16 neighbours) of one map,
+    // and its inputs (groups and features, 8 harmonics) for a whole codebook.
     let maps = compute_maps(&model, &rotations, 512);
     let mut groups = c.benchmark_group("neighbour_groups");
     groups.bench_function("one_map_512_points_128x16", |b| {
         b.iter(|| map_neighbours(&maps.points[..512], 128, 16))
     });
+    groups.bench_function("features_of_one_map_128x16", |b| {
+        b.iter(|| features_of_maps(&maps.points[..512], 512, 128, 16, 8))
+    });
     groups.sample_size(10);
-    groups.bench_function("all_2100_maps_128x16", |b| {
-        b.iter(|| neighbours_of_maps(&maps.points, 512, 128, 16))
+    groups.bench_function("features_of_all_2100_maps_128x16", |b| {
+        b.iter(|| features_of_maps(&maps.points, 512, 128, 16, 8))
     });
     groups.finish();
 }

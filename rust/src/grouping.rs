@@ -1,8 +1,10 @@
 //! Neighbour groups of a map, the encoder's local regions: for each of a
 //! map's first `centres` points (maps are in farthest-point order, so these
 //! are an even subset) the indices of its `k` nearest map points, itself
-//! included. Computed here rather than inside the ONNX graph, where a top-k
-//! over all pairwise distances cost a third of the encoder's time.
+//! included; and the features the encoder's layers read from them
+//! ([`MapFeatures`]). Computed here rather than inside the ONNX graph, where
+//! a top-k over all pairwise distances cost a third of the encoder's time
+//! and the features, dozens of small operations, another third.
 
 use rayon::prelude::*;
 
@@ -73,24 +75,128 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
     out
 }
 
-/// [`map_neighbours`] of every map in `points` (maps of `m` points each,
-/// flattened map-major), in parallel over maps: `maps × centres × k` indices.
-pub fn neighbours_of_maps(points: &[Point3], m: usize, centres: usize, k: usize) -> Vec<u32> {
+/// The encoder's inputs for maps (`export/network.py`, `map_features`):
+/// what its layers see of each neighbour group, unchanged by a turn of the
+/// map about the optical axis. Row-major, map-major; f32 operations in the
+/// graph's order, so the codes are the same bit for bit as when the graph
+/// computed them.
+pub struct MapFeatures {
+    /// `maps × centres × k × 6`: each neighbour's offset from its centre in
+    /// the centre's radial frame (x along the centre's polar direction),
+    /// its distance, then the centre's radius and depth; all × 4.
+    pub edges: Vec<f32>,
+    /// `maps × centres × 2`: each centre's radius from the optical axis and depth.
+    pub own: Vec<f32>,
+    /// `maps × centres × harmonics`: cos(mφ) of each centre's polar angle φ, m = 1, 2, ….
+    pub cos: Vec<f32>,
+    /// `maps × centres × harmonics`: sin(mφ).
+    pub sin: Vec<f32>,
+}
+
+/// Neighbour offsets in the encoder's units: ×4 puts them near 0.4, as the
+/// layers were trained.
+const EDGE_SCALE: f32 = 4.0;
+const EDGE_FEATURES: usize = 6;
+
+/// [`MapFeatures`] of every map in `points` (maps of `m` points each,
+/// flattened map-major), in parallel over maps.
+pub fn features_of_maps(
+    points: &[Point3],
+    m: usize,
+    centres: usize,
+    k: usize,
+    harmonics: usize,
+) -> MapFeatures {
     assert!(
-        m > 0 && points.len().is_multiple_of(m),
-        "points must hold whole maps of {m} points"
+        m > 0 && points.len().is_multiple_of(m) && centres <= m && (1..=m).contains(&k),
+        "points must hold whole maps of {m} points, each with {centres} centres of {k} neighbours"
     );
-    if points.len() == m {
-        // One map (a query): waking the thread pool would cost more than the work.
-        return map_neighbours(points, centres, k);
+    let maps = points.len() / m;
+    let sizes = [
+        centres * k * EDGE_FEATURES,
+        centres * 2,
+        centres * harmonics,
+    ];
+    let mut out = MapFeatures {
+        edges: vec![0.0; maps * sizes[0]],
+        own: vec![0.0; maps * sizes[1]],
+        cos: vec![0.0; maps * sizes[2]],
+        sin: vec![0.0; maps * sizes[2]],
+    };
+    if maps == 0 || centres == 0 {
+        return out;
     }
-    let per_map: Vec<Vec<u32>> = threads::install(|| {
-        points
-            .par_chunks(m)
-            .map(|map| map_neighbours(map, centres, k))
-            .collect()
-    });
-    per_map.concat()
+    let parts = points
+        .chunks(m)
+        .zip(out.edges.chunks_mut(sizes[0]))
+        .zip(out.own.chunks_mut(sizes[1]))
+        .zip(
+            out.cos
+                .chunks_mut(sizes[2])
+                .zip(out.sin.chunks_mut(sizes[2])),
+        )
+        .map(|(((map, edges), own), (cos, sin))| OneMap {
+            map,
+            edges,
+            own,
+            cos,
+            sin,
+        });
+    if maps == 1 {
+        // One map (a query): waking the thread pool would cost more than the work.
+        parts.for_each(|one| one.fill(centres, k, harmonics));
+    } else {
+        let parts: Vec<OneMap> = parts.collect();
+        threads::install(|| {
+            parts
+                .into_par_iter()
+                .for_each(|one| one.fill(centres, k, harmonics))
+        });
+    }
+    out
+}
+
+/// One map and its rows of [`MapFeatures`].
+struct OneMap<'a> {
+    map: &'a [Point3],
+    edges: &'a mut [f32],
+    own: &'a mut [f32],
+    cos: &'a mut [f32],
+    sin: &'a mut [f32],
+}
+
+impl OneMap<'_> {
+    fn fill(self, centres: usize, k: usize, harmonics: usize) {
+        let groups = map_neighbours(self.map, centres, k);
+        for (c, group) in groups.chunks_exact(k).enumerate() {
+            let [x, y, z] = self.map[c];
+            let r = (x * x + y * y + 1e-8).sqrt();
+            let (cos_phi, sin_phi) = (x / r, y / r);
+            self.own[2 * c] = r;
+            self.own[2 * c + 1] = z;
+            let rows = self.edges[c * k * EDGE_FEATURES..].chunks_exact_mut(EDGE_FEATURES);
+            for (&j, edge) in group.iter().zip(rows) {
+                let p = self.map[j as usize];
+                let d = [p[0] - x, p[1] - y, p[2] - z];
+                edge[0] = (cos_phi * d[0] + sin_phi * d[1]) * EDGE_SCALE;
+                edge[1] = (-sin_phi * d[0] + cos_phi * d[1]) * EDGE_SCALE;
+                edge[2] = d[2] * EDGE_SCALE;
+                edge[3] = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + 1e-12).sqrt() * EDGE_SCALE;
+                edge[4] = r * EDGE_SCALE;
+                edge[5] = z * EDGE_SCALE;
+            }
+            // cos(mφ), sin(mφ) by the angle-addition recurrence, as in training.
+            let row = c * harmonics..(c + 1) * harmonics;
+            let (mut cos_m, mut sin_m) = (cos_phi, sin_phi);
+            for (cos, sin) in self.cos[row.clone()].iter_mut().zip(&mut self.sin[row]) {
+                (*cos, *sin) = (cos_m, sin_m);
+                (cos_m, sin_m) = (
+                    cos_m * cos_phi - sin_m * sin_phi,
+                    sin_m * cos_phi + cos_m * sin_phi,
+                );
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -150,11 +256,34 @@ mod tests {
     fn many_maps_equal_one_at_a_time() {
         let mut rng = SplitMix64::new(5);
         let maps: Vec<Point3> = random_map(64 * 7, &mut rng);
-        let all = neighbours_of_maps(&maps, 64, 16, 4);
-        let one_by_one: Vec<u32> = maps
-            .chunks(64)
-            .flat_map(|m| map_neighbours(m, 16, 4))
-            .collect();
-        assert_eq!(all, one_by_one);
+        let all = features_of_maps(&maps, 64, 16, 4, 3);
+        for (i, map) in maps.chunks(64).enumerate() {
+            let one = features_of_maps(map, 64, 16, 4, 3);
+            assert_eq!(one.edges, all.edges[i * 16 * 4 * 6..(i + 1) * 16 * 4 * 6]);
+            assert_eq!(one.own, all.own[i * 32..(i + 1) * 32]);
+            assert_eq!(one.cos, all.cos[i * 48..(i + 1) * 48]);
+            assert_eq!(one.sin, all.sin[i * 48..(i + 1) * 48]);
+        }
+    }
+
+    #[test]
+    fn features_are_offsets_in_the_centres_radial_frame() {
+        // A centre on the y axis (φ = 90°) and a neighbour 0.1 further out along it.
+        let map: Vec<Point3> = vec![[0.0, 0.5, 0.2], [0.0, 0.6, 0.2], [3.0, 3.0, 3.0]];
+        let f = features_of_maps(&map, 3, 1, 2, 3);
+        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
+        assert!(close(&f.own, &[0.5, 0.2]));
+        assert!(
+            close(&f.edges[..6], &[0.0, 0.0, 0.0, 4e-6, 2.0, 0.8]),
+            "{:?}",
+            &f.edges[..6]
+        );
+        assert!(
+            close(&f.edges[6..], &[0.4, 0.0, 0.0, 0.4, 2.0, 0.8]),
+            "{:?}",
+            &f.edges[6..]
+        );
+        // cos/sin of 90°, 180°, 270°.
+        assert!(close(&f.cos, &[0.0, -1.0, 0.0]) && close(&f.sin, &[1.0, 0.0, -1.0]));
     }
 }

@@ -32,7 +32,7 @@ mod python;
 pub type Point3 = [f32; 3];
 
 pub use error::GeometryError;
-pub use grouping::{map_neighbours, neighbours_of_maps};
+pub use grouping::{features_of_maps, map_neighbours, MapFeatures};
 pub use index::{ModelIndex, Pose};
 pub use maps::{compute_maps, normalize_to_map, view_map, Maps, ViewMap};
 pub use model::StandardModel;

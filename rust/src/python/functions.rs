@@ -3,7 +3,7 @@
 
 use numpy::ndarray::Array;
 use numpy::{
-    IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyArray4, PyReadonlyArray1, PyReadonlyArray2,
     PyReadonlyArray3, PyUntypedArrayMethods,
 };
 use pyo3::exceptions::{PyTypeError, PyValueError};
@@ -26,7 +26,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(farthest_point_sample, m)?)?;
     m.add_function(wrap_pyfunction!(visible_mask, m)?)?;
     m.add_function(wrap_pyfunction!(normalize_to_map, m)?)?;
-    m.add_function(wrap_pyfunction!(map_neighbours, m)?)?;
+    m.add_function(wrap_pyfunction!(map_features, m)?)?;
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
     m.add_class::<PySegmentSettings>()?;
@@ -97,22 +97,30 @@ fn visible_mask<'py>(
     })
 }
 
-/// The encoder's neighbour groups of each map in `maps` (B, m, 3): for each
-/// map's first `centres` points, the indices of their `k` nearest map points
-/// (B, centres, k), in parallel over maps.
+/// The encoder's inputs for each map in `maps` (B, m, 3), in parallel over
+/// maps ([`grouping::MapFeatures`]): edge features (B, centres, k, 6), the
+/// centres' radius and depth (B, centres, 2), and cos(mφ), sin(mφ) of their
+/// polar angles (B, centres, harmonics) each.
 #[pyfunction]
-fn map_neighbours<'py>(
+#[allow(clippy::type_complexity)]
+fn map_features<'py>(
     py: Python<'py>,
     maps: PyReadonlyArray3<'py, f32>,
     centres: usize,
     k: usize,
-) -> PyResult<Bound<'py, PyArray3<u32>>> {
+    harmonics: usize,
+) -> PyResult<(
+    Bound<'py, PyArray4<f32>>,
+    Bound<'py, PyArray3<f32>>,
+    Bound<'py, PyArray3<f32>>,
+    Bound<'py, PyArray3<f32>>,
+)> {
     guarded(|| {
         let [b, m, three] = maps.shape() else {
             unreachable!("a 3-D array")
         };
         let (b, m) = (*b, *m);
-        if *three != 3 || centres > m || k > m || centres == 0 || k == 0 {
+        if *three != 3 || m == 0 || centres > m || k > m || centres == 0 || k == 0 {
             return Err(PyValueError::new_err(format!(
                 "maps of shape {:?} cannot give {centres} centres with {k} neighbours",
                 maps.shape()
@@ -122,10 +130,20 @@ fn map_neighbours<'py>(
             .as_slice()
             .map_err(|_| PyValueError::new_err("maps must be C-contiguous"))?;
         let points = flat.as_chunks::<3>().0;
-        let groups = py.detach(|| grouping::neighbours_of_maps(points, m, centres, k));
-        Ok(Array::from_shape_vec((b, centres, k), groups)
-            .expect("B × centres × k")
-            .into_pyarray(py))
+        let f = py.detach(|| grouping::features_of_maps(points, m, centres, k, harmonics));
+        let rows = |v: Vec<f32>, width: usize| {
+            Array::from_shape_vec((b, centres, width), v)
+                .expect("B × centres × width")
+                .into_pyarray(py)
+        };
+        Ok((
+            Array::from_shape_vec((b, centres, k, 6), f.edges)
+                .expect("B × centres × k × 6")
+                .into_pyarray(py),
+            rows(f.own, 2),
+            rows(f.cos, harmonics),
+            rows(f.sin, harmonics),
+        ))
     })
 }
 
