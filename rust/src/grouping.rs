@@ -29,50 +29,80 @@ pub fn map_neighbours(map: &[Point3], centres: usize, k: usize) -> Vec<u32> {
     let ys: Vec<f32> = map.iter().map(|p| p[1]).collect();
     let zs: Vec<f32> = map.iter().map(|p| p[2]).collect();
     let mut distances = vec![0.0f32; map.len()];
-    let mut candidates: Vec<(f32, u32)> = vec![(0.0, 0); map.len()];
+    // (distance, index) packed as one sortable key: distances are ≥ 0, whose
+    // bits order as they do; NaN is ranked last.
+    let key = |d: f32, j: usize| {
+        (if d.is_nan() { u32::MAX } else { d.to_bits() } as u64) << 32 | j as u64
+    };
+    let mut candidates: Vec<u64> = vec![0; map.len()];
     // Split the map into at least k blocks: any k of their minima are k
     // distinct distances, so the largest block minimum bounds the k-th
     // smallest distance from above.
     let block = map.len() / k;
     for c in &map[..centres] {
-        let mut bound = f32::NEG_INFINITY;
-        for (((d, x), y), z) in distances
-            .chunks_mut(block)
-            .zip(xs.chunks(block))
-            .zip(ys.chunks(block))
-            .zip(zs.chunks(block))
-        {
-            let mut least = f32::INFINITY;
-            for (((d, x), y), z) in d.iter_mut().zip(x).zip(y).zip(z) {
-                *d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
-                least = if *d < least { *d } else { least };
-            }
-            bound = if least > bound { least } else { bound };
+        // Two passes that each vectorise: the distances, then each block's
+        // minimum in lanes (a running minimum of one value does not).
+        for (((d, x), y), z) in distances.iter_mut().zip(&xs).zip(&ys).zip(&zs) {
+            *d = (x - c[0]) * (x - c[0]) + (y - c[1]) * (y - c[1]) + (z - c[2]) * (z - c[2]);
         }
-        // Keep the points within the bound, without branches: write every
-        // point, advance only past the kept ones.
+        let bound =
+            distances
+                .chunks(block)
+                .map(block_minimum)
+                .fold(
+                    f32::NEG_INFINITY,
+                    |bound, least| if least > bound { least } else { bound },
+                );
+        // Keep the points within the bound: a bit per point, 32 at a time
+        // (the compares vectorise), then visit the set bits.
         let mut kept = 0;
-        for (j, d) in distances.iter().enumerate() {
-            candidates[kept] = (*d, j as u32);
-            kept += (*d <= bound) as usize;
+        for (row, ds) in distances.chunks(32).enumerate() {
+            let mut bits = ds
+                .iter()
+                .enumerate()
+                .fold(0u32, |bits, (l, d)| bits | (((*d <= bound) as u32) << l));
+            while bits != 0 {
+                let j = row * 32 + bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                candidates[kept] = key(distances[j], j);
+                kept += 1;
+            }
         }
         if kept < k {
             // Only NaN coordinates get here: rank every point (NaN last).
             for (j, d) in distances.iter().enumerate() {
-                candidates[j] = (*d, j as u32);
+                candidates[j] = key(*d, j);
             }
             kept = distances.len();
         }
         let chosen = &mut candidates[..kept];
-        let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
         if chosen.len() > k {
-            chosen.select_nth_unstable_by(k - 1, order);
+            chosen.select_nth_unstable(k - 1);
         }
         let chosen = &mut chosen[..k];
-        chosen.sort_unstable_by(order);
-        out.extend(chosen.iter().map(|&(_, j)| j));
+        chosen.sort_unstable();
+        out.extend(chosen.iter().map(|&c| c as u32));
     }
     out
+}
+
+/// The least of `values` that are not NaN (infinity when none are).
+fn block_minimum(values: &[f32]) -> f32 {
+    const LANES: usize = 8;
+    let mut lanes = [f32::INFINITY; LANES];
+    let rows = values.chunks_exact(LANES);
+    let rest = rows.remainder();
+    for row in rows {
+        for (least, &v) in lanes.iter_mut().zip(row) {
+            *least = if v < *least { v } else { *least };
+        }
+    }
+    for &v in rest {
+        lanes[0] = if v < lanes[0] { v } else { lanes[0] };
+    }
+    lanes
+        .into_iter()
+        .fold(f32::INFINITY, |a, b| if b < a { b } else { a })
 }
 
 /// The encoder's inputs for maps (`export/network.py`, `map_features`):
@@ -250,6 +280,9 @@ mod tests {
         let groups = map_neighbours(&map, 4, 8);
         assert_eq!(groups.len(), 32);
         assert_eq!(&groups[..4], &[0, 1, 2, 4]);
+        // A NaN with its sign bit set ranks last too.
+        map[3] = [-f32::NAN, 0.0, 0.0];
+        assert_eq!(&map_neighbours(&map, 4, 8)[..4], &[0, 1, 2, 4]);
     }
 
     #[test]
