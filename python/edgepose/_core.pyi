@@ -268,6 +268,7 @@ class ModelIndex:
         rotations: npt.NDArray[np.float64],
         translations: npt.NDArray[np.float64],
         along_normal: bool = False,
+        stop_above: float | None = None,
     ) -> npt.NDArray[np.float64]: ...
     def align_translations(
         self,

@@ -210,16 +210,18 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
 
     def fits(R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Which turns (C, 3, 3), (C, 3) map every model point onto the surface."""
-        d = index.distances(every, np.ascontiguousarray(R), np.ascontiguousarray(t), True)
-        return (d.mean(axis=1) <= MAX_MEAN_SPACINGS * model.spacing) & (
-            np.quantile(d, TAIL_QUANTILE, axis=1) <= MAX_Q99_SPACINGS * model.spacing
-        )
+        limit = MAX_MEAN_SPACINGS * model.spacing
+        d = index.distances(every, np.ascontiguousarray(R), np.ascontiguousarray(t), True, limit)
+        ok = d.mean(axis=1) <= limit  # the others' rows were cut short
+        ok[ok] = np.quantile(d[ok], TAIL_QUANTILE, axis=1) <= MAX_Q99_SPACINGS * model.spacing
+        return ok
 
     probes = [(a, angle) for a in axes for angle in np.radians([*CONTINUOUS_PROBES_DEG, *(360 / n for n in ORDERS)])]
     R = np.stack([rotation_about(a, angle) for a, angle in probes])
     t = centroid - R @ centroid
     # Screen loosely, polish the survivors by ICP, then judge strictly on every point.
-    near = index.distances(screen, R, t, True).mean(axis=1) <= SCREEN_MEAN_SPACINGS * model.spacing
+    loose = SCREEN_MEAN_SPACINGS * model.spacing
+    near = index.distances(screen, R, t, True, loose).mean(axis=1) <= loose
     turns: dict[int, np.ndarray] = {}
     if near.any():
         icp = index.refine(screen, R[near], t[near], ICP_ITERATIONS, ICP_MAX_DIAMETERS * model.diameter)
@@ -288,7 +290,8 @@ def _near_turns(
     spread_R = _turns_about_spread_axes()
     R = np.ascontiguousarray(np.concatenate([R, spread_R]))
     t = np.ascontiguousarray(np.concatenate([t, centroid - spread_R @ centroid]))
-    screened = index.distances(screen, R, t, True).mean(axis=1)
+    # Turns screened above the cut-off are cut short (their mean reads inf).
+    screened = index.distances(screen, R, t, True, NEAR_SCREEN_FACTOR * limit).mean(axis=1)
     chosen: list[int] = []
     for i in np.argsort(screened, kind="stable"):
         if screened[i] > NEAR_SCREEN_FACTOR * limit or len(chosen) == NEAR_POLISHED:
@@ -302,7 +305,7 @@ def _near_turns(
     polished = np.array([_apart(np.eye(3), Ri, NEAR_MIN_ANGLE_DEG) for Ri in icp.rotations])
     R_c = np.where(polished[:, None, None], icp.rotations, R)
     t_c = np.where(polished[:, None], icp.translations, t)
-    mean = index.distances(np.ascontiguousarray(model.points), R_c, t_c, True).mean(axis=1)
+    mean = index.distances(np.ascontiguousarray(model.points), R_c, t_c, True, limit).mean(axis=1)
     kept: list[np.ndarray] = []
     known = [np.eye(4), *group]
     for i in np.argsort(mean, kind="stable"):

@@ -53,24 +53,38 @@ pub fn verify(index: &ModelIndex, keypoints: &[Point3], candidates: &[Pose]) -> 
 /// Distance (metres) from each of `points` (camera frame) to the model
 /// surface, for each pose (model → camera): row-major, poses × points.
 /// `along_normal`: the distance to the nearest model point's tangent plane
-/// instead (blind to how the surface happens to be sampled). Poses run in
-/// parallel (offline work such as symmetry detection).
+/// instead (blind to how the surface happens to be sampled). A pose whose
+/// distances sum past `stop_above` × N (metres; with a millionth's slack
+/// for the caller's own summation) is not finished: the rest of its row
+/// reads infinity, as its mean is above `stop_above` either way. Poses run
+/// in parallel (offline work such as symmetry detection).
 pub fn point_distances(
     index: &ModelIndex,
     points: &[Point3],
     poses: &[Pose],
     along_normal: bool,
+    stop_above: Option<f64>,
 ) -> Vec<f64> {
+    let mut out = vec![0.0; poses.len() * points.len()];
+    if points.is_empty() {
+        return out;
+    }
+    let stop = stop_above.map_or(f64::INFINITY, |s| s * points.len() as f64 * (1.0 + 1e-6));
     threads::install(|| {
-        poses
-            .par_iter()
-            .flat_map_iter(|pose| {
+        out.par_chunks_mut(points.len())
+            .zip(poses.par_iter())
+            .for_each(|(row, pose)| {
                 let to_model = pose.inverse();
-                points.iter().map(move |p| {
+                let mut sum = 0.0;
+                for (d, p) in row.iter_mut().zip(points) {
+                    if sum > stop {
+                        *d = f64::INFINITY;
+                        continue;
+                    }
                     let m = to_model.apply(p);
                     let m = [m.x as f32, m.y as f32, m.z as f32];
                     let (i, squared) = index.nearest(&m);
-                    if along_normal {
+                    *d = if along_normal {
                         let (q, n) = (index.points()[i], index.normals()[i]);
                         (0..3)
                             .map(|k| ((m[k] - q[k]) * n[k]) as f64)
@@ -78,11 +92,12 @@ pub fn point_distances(
                             .abs()
                     } else {
                         (squared as f64).sqrt()
-                    }
-                })
+                    };
+                    sum += *d;
+                }
             })
-            .collect()
-    })
+    });
+    out
 }
 
 #[cfg(test)]
@@ -107,14 +122,25 @@ mod tests {
             translation: Vector3::new(0.005, 0.0, 0.0), // half a spacing along the plane
         };
         let probe: Vec<Point3> = points[..20].to_vec();
-        let d = point_distances(&index, &probe, &[lifted, slid], false);
+        let d = point_distances(&index, &probe, &[lifted, slid], false, None);
         assert_eq!(d.len(), 2 * probe.len());
         assert!(d[..20].iter().all(|v| (v - 0.003).abs() < 1e-6), "{d:?}");
         assert!(d[20..].iter().all(|v| (v - 0.005).abs() < 1e-6), "{d:?}");
         // Along the normal, sliding within the plane costs nothing.
-        let n = point_distances(&index, &probe, &[lifted, slid], true);
+        let n = point_distances(&index, &probe, &[lifted, slid], true, None);
         assert!(n[..20].iter().all(|v| (v - 0.003).abs() < 1e-6), "{n:?}");
         assert!(n[20..].iter().all(|v| v.abs() < 1e-6), "{n:?}");
+        // A row whose mean is past the stop is cut short; one below it is whole.
+        let cut = point_distances(&index, &probe, &[lifted, slid], false, Some(0.004));
+        let kept = cut[..20].iter().zip(&d[..20]).all(|(a, b)| a == b);
+        assert!(kept, "{cut:?}");
+        assert!(cut[20..].iter().any(|v| v.is_infinite()), "{cut:?}");
+        assert!(
+            cut[20..]
+                .iter()
+                .all(|v| v.is_infinite() || (v - 0.005).abs() < 1e-6),
+            "{cut:?}"
+        );
     }
 
     #[test]

@@ -193,8 +193,11 @@ impl PyModelIndex {
     /// Distance (metres) from each of `points` (N, 3) to the model surface,
     /// for each pose (model → camera: `rotations` (C, 3, 3), `translations`
     /// (C, 3)): `(C, N)`; `along_normal`: to the nearest model point's
-    /// tangent plane. Poses run in parallel.
-    #[pyo3(signature = (points, rotations, translations, along_normal = false))]
+    /// tangent plane. `stop_above` (metres): a pose whose mean distance is
+    /// plainly above it is not finished, the rest of its row reads inf
+    /// (callers that only compare means with it lose nothing). Poses run in
+    /// parallel.
+    #[pyo3(signature = (points, rotations, translations, along_normal = false, stop_above = None))]
     fn distances<'py>(
         &self,
         py: Python<'py>,
@@ -202,11 +205,19 @@ impl PyModelIndex {
         rotations: PyReadonlyArray3<'py, f64>,
         translations: PyReadonlyArray2<'py, f64>,
         along_normal: bool,
+        stop_above: Option<f64>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         guarded(|| {
             let p = cloud_triples(&points, "points")?;
             let poses = poses_from(&rotations, &translations)?;
-            let flat = py.detach(|| search::point_distances(&self.inner, p, &poses, along_normal));
+            if let Some(stop) = stop_above.filter(|s| !(s.is_finite() && *s >= 0.0)) {
+                return Err(PyValueError::new_err(format!(
+                    "stop_above must be finite and non-negative, got {stop}"
+                )));
+            }
+            let flat = py.detach(|| {
+                search::point_distances(&self.inner, p, &poses, along_normal, stop_above)
+            });
             PyArray1::from_vec(py, flat).reshape([poses.len(), p.len()])
         })
     }
