@@ -107,10 +107,11 @@ class Encoder:
         when these networks ship none."""
         return self.scene_confidence if with_scene else self.confidence
 
-    def encode(self, maps: np.ndarray, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    def encode(self, maps: np.ndarray, batch: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """(B, M, 3) maps → codes (B, code_size) unit float32, spectra (B, spectrum_size) float32.
-        Chunks of at most ``batch`` maps run on ``threads`` threads; each
-        map's result is the same whatever the chunks."""
+        Chunks of at most ``batch`` maps run on ``threads`` threads (one map
+        a call keeps a call's layers in the core's cache); each map's result
+        is the same whatever the chunks."""
         maps = np.ascontiguousarray(maps, dtype=np.float32)
         if maps.ndim != 3 or maps.shape[1:] != (self.map_points, 3):
             raise ValueError(f"maps must have shape (B, {self.map_points}, 3), got {maps.shape}")
