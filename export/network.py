@@ -8,8 +8,8 @@ in unit-sphere scale. The camera may have turned by any angle θ about z, so:
   its own radial frame (rotated by −φ, its polar angle), plus its radius and
   depth (:func:`map_features`). Those features are the graph's inputs: the
   Rust core computes them at run time, groups (each centre's kNN) included
-  (inside ONNX, a top-k and dozens of small operations cost two thirds of
-  the encoder's time); :func:`neighbour_groups` and :func:`map_features`
+  (inside ONNX, a top-k and dozens of small operations were slow:
+  ``export/README.md``); :func:`neighbour_groups` and :func:`map_features`
   during training.
 * the **code head** max-pools those features into a unit code: identical for
   every in-plane turn, and trained (triplet loss on cosine, margin 0.1) to

@@ -40,9 +40,9 @@ class Encoder:
 
     ``threads``: how many chunks of a batch of maps :meth:`encode` runs at
     once, each onnxruntime call on one core (1 suits a robot sharing its
-    CPU). The networks are many small operations, which one call spreads
-    over cores poorly; chunks side by side use them fully. Sessions are
-    safe to call from several threads at once.
+    CPU). One map's layers are too small for one call to spread over
+    cores well; chunks side by side use them fully. Sessions are safe to
+    call from several threads at once.
     """
 
     def __init__(self, models_dir: Path | str = MODELS_DIR, threads: int = 1) -> None:

@@ -200,7 +200,7 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     (``MAX_MEAN_SPACINGS``, ``MAX_Q99_SPACINGS``). An axis whose three odd
     turns all count is continuous, and then only a flip across it is kept
     besides; else the turns are closed into their group. Near turns (:func:`_near_turns`) are
-    sought too. Deterministic; 0.1–0.3 s."""
+    sought too. Deterministic."""
     index = index or _core.ModelIndex(model.core)
     points = model.points.astype(np.float64)
     centroid = points.mean(axis=0)

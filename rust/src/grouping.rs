@@ -2,9 +2,9 @@
 //! map's first `centres` points (maps are in farthest-point order, so these
 //! are an even subset) the indices of its `k` nearest map points, itself
 //! included; and the features the encoder's layers read from them
-//! ([`MapFeatures`]). Computed here rather than inside the ONNX graph, where
-//! a top-k over all pairwise distances cost a third of the encoder's time
-//! and the features, dozens of small operations, another third.
+//! ([`MapFeatures`]). Computed here rather than inside the ONNX graph, which
+//! did both slowly: a top-k over all pairwise distances and dozens of small
+//! operations (`export/README.md` has the figures).
 
 use rayon::prelude::*;
 
