@@ -111,6 +111,20 @@ fn bench_search(c: &mut Criterion) {
     group.bench_function("nearest_1024_points_near_surface/kd_tree", |b| {
         b.iter(|| near.iter().map(|q| index.nearest_in_tree(q).1).sum::<f32>())
     });
+    // What candidate alignment and scoring ask of a wrong candidate's
+    // keypoints: points up to 1 cm off the surface, within 1 cm.
+    let off: Vec<Point3> = points
+        .iter()
+        .step_by(4)
+        .map(|p| p.map(|v| v + 0.02 * (rng.next_f64() as f32 - 0.5)))
+        .collect();
+    group.bench_function("nearest_1024_points_off_surface_within_1cm/grid", |b| {
+        b.iter(|| {
+            off.iter()
+                .filter_map(|q| index.nearest_within(q, 0.01))
+                .count()
+        })
+    });
 
     // Real-scene steps: the camera-facing half of the box seen from the
     // truth's camera (about 2,048 points with the spill ring below), and a

@@ -213,8 +213,9 @@ pub(crate) fn sampled_spacings(tree: &ModelTree, points: &[Point3]) -> Vec<f64> 
 /// The model's points binned into a uniform grid of cubes (reaching
 /// [`MARGIN_DIAGONALS`] beyond their bounding box), for exact
 /// nearest-neighbour queries: a query near the surface scans its cell's
-/// [`CandidateLists`] entry; one farther out searches the cells in rings of
-/// growing size around its cell until no point outside them can be nearer;
+/// [`CandidateLists`] entry; one farther out the list of its cell of this
+/// grid; one farther still searches the cells in rings of growing size
+/// around its cell until no point outside them can be nearer;
 /// one farther than the caller's cut-off is turned away by the cell's
 /// clearance. The same answer as the kd-tree (ties aside), 2–3× sooner.
 struct CellIndex {
@@ -237,7 +238,16 @@ struct CellIndex {
     /// surface list every model point that can be nearest to a point in
     /// them: one short scan answers most of ICP's queries.
     lists: CandidateLists,
+    /// The same lists for this grid's own cells, out to [`FAR_BAND_CELLS`]:
+    /// they answer the queries beyond the finer grid's band (a wrong
+    /// candidate's keypoints, a far start of ICP) with one scan instead of
+    /// the rings of cells.
+    far: CandidateLists,
 }
+
+/// Cells of the coarse grid whose centre lies within this many cell sides
+/// of the model get a candidate list.
+const FAR_BAND_CELLS: f64 = 3.0;
 
 /// Cells of [`CandidateLists`] are this many mean point spacings wide: short
 /// lists, few cells (`docs/tuning.md`, "The Rust core's constants").
@@ -372,12 +382,12 @@ impl Grid {
     }
 }
 
-/// Per cell of a grid over the model's bounding box, the model points that
+/// Per cell of a grid around the model, the model points that
 /// can be nearest to some point in the cell: those within `r + 2h` of its
 /// centre, where `r` is the distance from the centre to its nearest model
 /// point and `h` half the cell's diagonal (a point `q` of the cell has a
 /// model point within `r + h`, so its nearest lies within `r + 2h` of the
-/// centre). Cells farther than [`LIST_BAND_CELLS`] from the model hold none,
+/// centre). Cells farther than the band asked for from the model hold none,
 /// and so does every cell of a model of more than 65,536 points (lists of
 /// 16-bit indices).
 struct CandidateLists {
@@ -388,11 +398,12 @@ struct CandidateLists {
 }
 
 impl CandidateLists {
-    fn new(points: &[Point3], lo: [f32; 3], hi: [f32; 3], cell: f32, tree: &ModelTree) -> Self {
-        let grid = Grid::new(lo, hi, cell, 0.0, MAX_MODEL_CELLS);
+    /// Lists for the cells of `grid` (over the model's `points`, indexed by
+    /// `tree`) whose centre lies within `band_cells` cell sides of the model.
+    fn new(points: &[Point3], grid: Grid, band_cells: f64, tree: &ModelTree) -> Self {
         let (cell, dims, count) = (grid.cell, grid.dims, grid.count());
         let half_diagonal = 0.5 * 3f64.sqrt() * cell as f64;
-        let band = LIST_BAND_CELLS * cell as f64;
+        let band = band_cells * cell as f64;
         // Cells whose centre lies within `band` of some model point: its
         // centre is within `band + h` of that point's cell's centre, so their
         // offset (in cells) is at most that long, with slack for rounding
@@ -473,10 +484,14 @@ impl CandidateLists {
 
     /// The list of `p`'s cell: empty outside the box or far from the model.
     fn of(&self, p: &[f32; 3]) -> &[u16] {
-        let Some(g) = self.grid.coordinates(p) else {
-            return &[];
-        };
-        let c = self.grid.flat(g);
+        match self.grid.coordinates(p) {
+            Some(g) => self.at(self.grid.flat(g)),
+            None => &[],
+        }
+    }
+
+    /// The list of cell `c` (a [`Grid::flat`] index).
+    fn at(&self, c: usize) -> &[u16] {
         &self.items[self.starts[c] as usize..self.starts[c + 1] as usize]
     }
 }
@@ -574,7 +589,13 @@ impl CellIndex {
             anchor,
             starts,
             points: sorted,
-            lists: CandidateLists::new(points, lo, hi, LIST_SPACINGS * spacing, tree),
+            far: CandidateLists::new(points, grid, FAR_BAND_CELLS, tree),
+            lists: CandidateLists::new(
+                points,
+                Grid::new(lo, hi, LIST_SPACINGS * spacing, 0.0, MAX_MODEL_CELLS),
+                LIST_BAND_CELLS,
+                tree,
+            ),
         }
     }
 
@@ -594,10 +615,14 @@ impl CellIndex {
                 Lookup::Unknown
             };
         };
-        if self.clearance[grid.flat(g)] as f64 > max_distance {
+        let c = grid.flat(g);
+        if self.clearance[c] as f64 > max_distance {
             return Lookup::Beyond;
         }
-        let list = self.lists.of(p);
+        let mut list = self.lists.of(p);
+        if list.is_empty() {
+            list = self.far.at(c);
+        }
         if !list.is_empty() {
             let mut best = (f32::INFINITY, u32::MAX);
             for &item in list {
