@@ -607,6 +607,13 @@ impl CellIndex {
         if model.is_empty() {
             return Lookup::Unknown;
         }
+        // A fine list answers first: its cells lie near the surface, where
+        // the clearance below turns nothing away (a point it would turn
+        // away is as far from its nearest point, which the caller drops).
+        let fine = self.lists.of(p);
+        if !fine.is_empty() {
+            return nearest_in_list(p, fine, model);
+        }
         let grid = &self.grid;
         let Some(g) = grid.coordinates(p) else {
             return if max_distance < self.margin {
@@ -619,19 +626,9 @@ impl CellIndex {
         if self.clearance[c] as f64 > max_distance {
             return Lookup::Beyond;
         }
-        let mut list = self.lists.of(p);
-        if list.is_empty() {
-            list = self.far.at(c);
-        }
-        if !list.is_empty() {
-            let mut best = (f32::INFINITY, u32::MAX);
-            for &item in list {
-                let d = squared(p, &model[item as usize]);
-                if d < best.0 {
-                    best = (d, item as u32); // ascending items: ties keep the lower
-                }
-            }
-            return Lookup::Found(best.1 as usize, best.0);
+        let far = self.far.at(c);
+        if !far.is_empty() {
+            return nearest_in_list(p, far, model);
         }
         // Distances from `p` to its cell's lower and upper walls, per axis:
         // a cell `k` cells away along an axis is at least `(k − 1)` cells
@@ -702,6 +699,19 @@ impl CellIndex {
         }
         Lookup::Unknown
     }
+}
+
+/// The nearest to `p` of the `model`'s points listed (ascending indices,
+/// not empty) and its squared distance; ties go to the lower index.
+fn nearest_in_list(p: &[f32; 3], list: &[u16], model: &[Point3]) -> Lookup {
+    let mut best = (f32::INFINITY, u16::MAX);
+    for &item in list {
+        let d = squared(p, &model[item as usize]);
+        if d < best.0 {
+            best = (d, item); // ascending items: ties keep the lower
+        }
+    }
+    Lookup::Found(best.1 as usize, best.0)
 }
 
 /// Squared distance, summed in kiddo's order (x, y, z): the same f32 value.
