@@ -97,14 +97,18 @@ fn bench_search(c: &mut Criterion) {
     group.bench_function("icp_1024_points_20_iterations", |b| {
         b.iter(|| index.refine(&cloud, start, 20, 0.02))
     });
+    // Every 4th model point moved by up to `reach` / 2 along each axis (metres).
+    let mut jittered = |reach: f32| -> Vec<Point3> {
+        points
+            .iter()
+            .step_by(4)
+            .map(|p| p.map(|v| v + reach * (rng.next_f64() as f32 - 0.5)))
+            .collect()
+    };
     // What ICP asks 20,000 times an estimate: the nearest model point to a
     // point near the surface (model frame, up to 3 mm off), through the grid
     // of cells (`nearest`) and through the kd-tree alone.
-    let near: Vec<Point3> = points
-        .iter()
-        .step_by(4)
-        .map(|p| p.map(|v| v + 0.006 * (rng.next_f64() as f32 - 0.5)))
-        .collect();
+    let near = jittered(0.006);
     group.bench_function("nearest_1024_points_near_surface/grid", |b| {
         b.iter(|| near.iter().map(|q| index.nearest(q).1).sum::<f32>())
     });
@@ -113,11 +117,7 @@ fn bench_search(c: &mut Criterion) {
     });
     // What candidate alignment and scoring ask of a wrong candidate's
     // keypoints: points up to 1 cm off the surface, within 1 cm.
-    let off: Vec<Point3> = points
-        .iter()
-        .step_by(4)
-        .map(|p| p.map(|v| v + 0.02 * (rng.next_f64() as f32 - 0.5)))
-        .collect();
+    let off = jittered(0.02);
     group.bench_function("nearest_1024_points_off_surface_within_1cm/grid", |b| {
         b.iter(|| {
             off.iter()
