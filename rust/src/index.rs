@@ -643,7 +643,7 @@ impl CellIndex {
             k => upper[a] + (k - 1) as f32 * grid.cell,
         };
         let wanted = (max_distance * max_distance).min(f32::MAX as f64) as f32;
-        let anchor = self.anchor[grid.flat(g)];
+        let anchor = self.anchor[c];
         let mut best = (squared(p, &model[anchor as usize]), anchor);
         for ring in 0..=MAX_RING {
             let lo: [i32; 3] = std::array::from_fn(|a| (g[a] - ring).max(0));
