@@ -250,10 +250,23 @@ impl DepthGrid {
         if p.z <= 0.0 {
             return None;
         }
-        let (cu, cv) = (
-            (p.x / p.z - self.u0) / self.cell,
-            (p.y / p.z - self.v0) / self.cell,
-        );
+        let (cu, cv) = self.cell_of(p.x, p.y, p.z);
+        self.depth_in_cell(cu, cv)
+    }
+
+    /// The grid coordinates (columns, rows; fractional) of the ray through
+    /// the camera-frame point (`x`, `y`, `z`), `z` > 0. Branch-free, so the
+    /// free-space loop computes it in vector lanes.
+    #[inline(always)]
+    fn cell_of(&self, x: f64, y: f64, z: f64) -> (f64, f64) {
+        ((x / z - self.u0) / self.cell, (y / z - self.v0) / self.cell)
+    }
+
+    /// The nearest observed depth (metres) in the cell at grid coordinates
+    /// ([`cell_of`](Self::cell_of)), or `None` off the grid or where nothing
+    /// was observed.
+    #[inline(always)]
+    fn depth_in_cell(&self, cu: f64, cv: f64) -> Option<f64> {
         if cu < 0.0 || cv < 0.0 || cu >= self.cols as f64 || cv >= self.rows as f64 {
             return None;
         }
@@ -394,6 +407,173 @@ fn each_pose<T: Send>(poses: &[Pose], f: impl Fn(&Pose) -> T + Sync + Send) -> V
     }
 }
 
+/// Every `stride`-th model point and its normal (model frame, metres), as
+/// f64 columns: the free-space test transforms them in vector lanes. Empty
+/// for stride 0 (no free-space test).
+struct ModelSample {
+    points: [Vec<f64>; 3],
+    normals: [Vec<f64>; 3],
+}
+
+impl ModelSample {
+    fn new(index: &ModelIndex, stride: usize) -> Self {
+        let tested = if stride == 0 { 0 } else { index.points().len() };
+        let column = |of: &[Point3], axis: usize| -> Vec<f64> {
+            of[..tested]
+                .iter()
+                .step_by(stride.max(1))
+                .map(|p| p[axis] as f64)
+                .collect()
+        };
+        let normals = &index.normals()[..tested];
+        Self {
+            points: std::array::from_fn(|a| column(index.points(), a)),
+            normals: std::array::from_fn(|a| column(normals, a)),
+        }
+    }
+}
+
+/// The free-space test's counts of one pose: the camera-facing model points
+/// of the sample, those on observed rays, those of them in front of the
+/// observation, and those off the rays in front of the scene.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct FreeSpaceCounts {
+    facing: usize,
+    on_rays: usize,
+    violations: usize,
+    in_front_of_scene: usize,
+}
+
+/// Model points posed a chunk at a time: the transform, the facing test and
+/// the grid coordinates run over a chunk in vector lanes, the grid look-ups
+/// after it.
+const CHUNK: usize = 64;
+
+/// [`FreeSpaceCounts`] of `pose` (model → camera) for the `sample`'s points
+/// against the `grid`; a model point `tolerance` metres or more in front of
+/// what was seen violates. The operations of `pose.apply` and of nalgebra's
+/// products in the same order, so the same counts as point by point.
+fn free_space_counts(
+    sample: &ModelSample,
+    grid: &DepthGrid,
+    pose: &Pose,
+    tolerance: f64,
+) -> FreeSpaceCounts {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 is present (checked above).
+        return unsafe { free_space_counts_avx2(sample, grid, pose, tolerance) };
+    }
+    counts_in(sample, grid, pose, tolerance)
+}
+
+/// [`free_space_counts`] compiled for AVX2: its lanes 4 f64 wide rather
+/// than SSE2's 2; the same operations, so the same counts.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn free_space_counts_avx2(
+    sample: &ModelSample,
+    grid: &DepthGrid,
+    pose: &Pose,
+    tolerance: f64,
+) -> FreeSpaceCounts {
+    counts_in(sample, grid, pose, tolerance)
+}
+
+#[inline(always)]
+fn counts_in(
+    sample: &ModelSample,
+    grid: &DepthGrid,
+    pose: &Pose,
+    tolerance: f64,
+) -> FreeSpaceCounts {
+    let mut counts = FreeSpaceCounts::default();
+    let mut chunk = PosedChunk::default();
+    for start in (0..sample.points[0].len()).step_by(CHUNK) {
+        let len = chunk.pose(sample, start, pose, grid);
+        let PosedChunk { x, y, z, dot, u, v } = &chunk;
+        for k in 0..len {
+            if dot[k] >= 0.0 {
+                continue; // faces away from the camera: hidden by the object itself
+            }
+            counts.facing += 1;
+            let observed = if z[k] > 0.0 {
+                grid.depth_in_cell(u[k], v[k])
+            } else {
+                None
+            };
+            if let Some(depth) = observed {
+                counts.on_rays += 1;
+                if z[k] < depth - tolerance {
+                    counts.violations += 1;
+                }
+            } else if let Some(scene) = &grid.scene {
+                if scene.in_front(&Vector3::new(x[k], y[k], z[k]), tolerance) {
+                    counts.in_front_of_scene += 1;
+                }
+            }
+        }
+    }
+    counts
+}
+
+/// Up to [`CHUNK`] sample points posed in the camera frame (metres): their
+/// coordinates, the dot product of each posed normal with its point (< 0:
+/// the point faces the camera), and their depth-grid coordinates
+/// ([`DepthGrid::cell_of`]; meaningless for `z` ≤ 0).
+struct PosedChunk {
+    x: [f64; CHUNK],
+    y: [f64; CHUNK],
+    z: [f64; CHUNK],
+    dot: [f64; CHUNK],
+    u: [f64; CHUNK],
+    v: [f64; CHUNK],
+}
+
+impl Default for PosedChunk {
+    fn default() -> Self {
+        Self {
+            x: [0.0; CHUNK],
+            y: [0.0; CHUNK],
+            z: [0.0; CHUNK],
+            dot: [0.0; CHUNK],
+            u: [0.0; CHUNK],
+            v: [0.0; CHUNK],
+        }
+    }
+}
+
+impl PosedChunk {
+    /// The sample's points `start..` (at most [`CHUNK`]) under `pose`; how
+    /// many. Branch-free, so it runs in vector lanes; `R·p + t`, `R·n` and
+    /// the dot product in nalgebra's order of operations
+    /// (`((r₀x + r₁y) + r₂z) + t`), so each value is bit for bit what
+    /// `pose.apply` and `Vector3::dot` give.
+    #[inline(always)]
+    fn pose(&mut self, sample: &ModelSample, start: usize, pose: &Pose, grid: &DepthGrid) -> usize {
+        let (r, t) = (&pose.rotation, &pose.translation);
+        let len = CHUNK.min(sample.points[0].len() - start);
+        let [px, py, pz] = sample.points.each_ref().map(|c| &c[start..start + len]);
+        let [nx, ny, nz] = sample.normals.each_ref().map(|c| &c[start..start + len]);
+        for k in 0..len {
+            let (a, b, c) = (px[k], py[k], pz[k]);
+            let x = r[(0, 0)] * a + r[(0, 1)] * b + r[(0, 2)] * c + t.x;
+            let y = r[(1, 0)] * a + r[(1, 1)] * b + r[(1, 2)] * c + t.y;
+            let z = r[(2, 0)] * a + r[(2, 1)] * b + r[(2, 2)] * c + t.z;
+            let (a, b, c) = (nx[k], ny[k], nz[k]);
+            let n = [
+                r[(0, 0)] * a + r[(0, 1)] * b + r[(0, 2)] * c,
+                r[(1, 0)] * a + r[(1, 1)] * b + r[(1, 2)] * c,
+                r[(2, 0)] * a + r[(2, 1)] * b + r[(2, 2)] * c,
+            ];
+            self.dot[k] = n[0] * x + n[1] * y + n[2] * z;
+            (self.x[k], self.y[k], self.z[k]) = (x, y, z);
+            (self.u[k], self.v[k]) = grid.cell_of(x, y, z);
+        }
+        len
+    }
+}
+
 /// Scores each pose (model → camera) against `observed` points and the
 /// `grid` of the whole observed cloud.
 pub fn score_poses(
@@ -403,13 +583,15 @@ pub fn score_poses(
     poses: &[Pose],
     settings: &ScoreSettings,
 ) -> Vec<PoseScore> {
+    let sample = ModelSample::new(index, settings.model_stride);
     each_pose(poses, |pose| {
-        score_pose(index, observed, grid, pose, settings)
+        score_pose(index, &sample, observed, grid, pose, settings)
     })
 }
 
 fn score_pose(
     index: &ModelIndex,
+    sample: &ModelSample,
     observed: &[Point3],
     grid: &DepthGrid,
     pose: &Pose,
@@ -442,36 +624,12 @@ fn score_pose(
     } else {
         0.0
     };
-    let (mut facing, mut on_rays, mut violations, mut in_front_of_scene) =
-        (0usize, 0usize, 0usize, 0usize);
-    let tested = if settings.model_stride == 0 {
-        0
-    } else {
-        index.points().len()
-    };
-    let stride = settings.model_stride.max(1);
-    for (p, n) in index.points()[..tested]
-        .iter()
-        .zip(index.normals())
-        .step_by(stride)
-    {
-        let pc = pose.apply(p);
-        let nc = pose.rotation * Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
-        if nc.dot(&pc) >= 0.0 {
-            continue; // faces away from the camera: hidden by the object itself
-        }
-        facing += 1;
-        if let Some(z) = grid.observed_depth(&pc) {
-            on_rays += 1;
-            if pc.z < z - settings.free_space_tolerance {
-                violations += 1;
-            }
-        } else if let Some(scene) = &grid.scene {
-            if scene.in_front(&pc, settings.free_space_tolerance) {
-                in_front_of_scene += 1;
-            }
-        }
-    }
+    let FreeSpaceCounts {
+        facing,
+        on_rays,
+        violations,
+        in_front_of_scene,
+    } = free_space_counts(sample, grid, pose, settings.free_space_tolerance);
     let count = observed.len().max(1) as f64;
     PoseScore {
         fit: total / count,
@@ -494,6 +652,7 @@ fn score_pose(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::rng::SplitMix64;
     use nalgebra::Rotation3;
 
     /// Points and outward normals of an axis-aligned box's surface, `spacing` apart.
@@ -767,6 +926,146 @@ mod tests {
                 && pinned.translation_constraint <= 1.0 / 3.0 + 1e-9,
             "{pinned:?}"
         );
+    }
+
+    /// The free-space counts point by point, as nalgebra computes each
+    /// point's pose: what the chunked lanes must reproduce.
+    fn counts_point_by_point(
+        index: &ModelIndex,
+        grid: &DepthGrid,
+        pose: &Pose,
+        stride: usize,
+        tolerance: f64,
+    ) -> FreeSpaceCounts {
+        let mut counts = FreeSpaceCounts::default();
+        for (p, n) in index.points().iter().zip(index.normals()).step_by(stride) {
+            let pc = pose.apply(p);
+            let nc = pose.rotation * Vector3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+            if nc.dot(&pc) >= 0.0 {
+                continue;
+            }
+            counts.facing += 1;
+            if let Some(z) = grid.observed_depth(&pc) {
+                counts.on_rays += 1;
+                counts.violations += usize::from(pc.z < z - tolerance);
+            } else if let Some(scene) = &grid.scene {
+                counts.in_front_of_scene += usize::from(scene.in_front(&pc, tolerance));
+            }
+        }
+        counts
+    }
+
+    #[test]
+    fn a_posed_chunk_holds_nalgebras_values_bit_for_bit() {
+        let (points, normals) = plate_with_knob();
+        let index = ModelIndex::new(points, normals);
+        let grid = DepthGrid::new(&[[0.0, 0.0, 0.5], [0.01, 0.0, 0.5]], 0.002, 2.0);
+        let sample = ModelSample::new(&index, 3);
+        let mut rng = SplitMix64::new(8);
+        let mut chunk = PosedChunk::default();
+        for _ in 0..20 {
+            let mut angle = || (rng.next_f64() - 0.5) * 6.0;
+            let pose = Pose {
+                rotation: *Rotation3::from_euler_angles(angle(), angle(), angle()).matrix(),
+                translation: Vector3::new(0.1 * angle(), 0.1 * angle(), 0.5 + 0.1 * angle()),
+            };
+            for start in (0..sample.points[0].len()).step_by(CHUNK) {
+                let len = chunk.pose(&sample, start, &pose, &grid);
+                for k in 0..len {
+                    let i = start + k;
+                    let p = Vector3::from(sample.points.each_ref().map(|c| c[i]));
+                    let n = Vector3::from(sample.normals.each_ref().map(|c| c[i]));
+                    let pc = pose.rotation * p + pose.translation;
+                    let nc = pose.rotation * n;
+                    let bits = |v: [f64; 3]| v.map(f64::to_bits);
+                    assert_eq!(bits([chunk.x[k], chunk.y[k], chunk.z[k]]), bits(pc.into()));
+                    assert_eq!(chunk.dot[k].to_bits(), nc.dot(&pc).to_bits());
+                    let (u, v) = grid.cell_of(pc.x, pc.y, pc.z);
+                    assert_eq!(bits([chunk.u[k], chunk.v[k], 0.0]), bits([u, v, 0.0]));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_chunked_free_space_test_counts_as_point_by_point() {
+        // A plate with a knob (300 of its points seen) posed at random near
+        // the seen pose, a scene behind it, strides that leave partial chunks.
+        let (points, normals) = plate_with_knob();
+        let index = ModelIndex::new(points.clone(), normals.clone());
+        let seen_pose = Pose {
+            rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.1).matrix(),
+            translation: Vector3::new(0.01, -0.02, 0.45),
+        };
+        let cloud: Vec<Point3> = posed(&points, &normals, &seen_pose, true)
+            .into_iter()
+            .step_by(7)
+            .take(300)
+            .collect();
+        let camera = Pinhole {
+            fx: 300.0,
+            fy: 300.0,
+            cx: 80.0,
+            cy: 60.0,
+        };
+        let depth: Vec<f32> = (0..160 * 120)
+            .map(|i| {
+                if i % 13 == 0 {
+                    0.0
+                } else {
+                    0.4 + (i % 160) as f32 * 0.001
+                }
+            })
+            .collect();
+        let mut rng = SplitMix64::new(5);
+        let mut angle = || (rng.next_f64() - 0.5) * 1.5;
+        // The first pose puts the model partly behind the camera.
+        let poses: Vec<Pose> = (0..40)
+            .map(|k| {
+                let depth = if k == 0 { 0.0 } else { 0.45 + 0.05 * angle() };
+                Pose {
+                    rotation: *Rotation3::from_euler_angles(angle(), angle(), angle()).matrix(),
+                    translation: Vector3::new(0.02 * angle(), 0.02 * angle(), depth),
+                }
+            })
+            .collect();
+        let mut seen = FreeSpaceCounts::default();
+        for scene in [false, true] {
+            let mut grid = DepthGrid::new(&cloud, 0.002, 2.0);
+            if scene {
+                grid = grid.with_scene(SceneDepth::new(&depth, 160, camera, 2));
+            }
+            for stride in [1, 3, 4, 7] {
+                let sample = ModelSample::new(&index, stride);
+                for pose in &poses {
+                    let tolerance = 0.003;
+                    let chunked = free_space_counts(&sample, &grid, pose, tolerance);
+                    assert_eq!(chunked, counts_in(&sample, &grid, pose, tolerance));
+                    seen.facing += chunked.facing;
+                    seen.on_rays += chunked.on_rays;
+                    seen.violations += chunked.violations;
+                    seen.in_front_of_scene += chunked.in_front_of_scene;
+                    assert_eq!(
+                        chunked,
+                        counts_point_by_point(&index, &grid, pose, stride, tolerance),
+                        "stride {stride}, scene {scene}"
+                    );
+                }
+            }
+        }
+        // Every branch was taken: off the rays, on them, violating, before the scene.
+        let FreeSpaceCounts {
+            facing,
+            on_rays,
+            violations,
+            in_front_of_scene,
+        } = seen;
+        assert!(
+            facing > on_rays && on_rays > violations && violations > 0,
+            "{seen:?}"
+        );
+        assert!(in_front_of_scene > 0, "{seen:?}");
+        assert_eq!(ModelSample::new(&index, 0).points[0].len(), 0);
     }
 
     #[test]
