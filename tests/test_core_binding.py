@@ -117,6 +117,11 @@ def test_icp_results_are_typed_with_one_entry_per_start():
         np.testing.assert_array_equal(getattr(second, name), getattr(icp, name)[1:])
     with pytest.raises(IndexError, match="ICP result 2 asked for, but there are 2"):
         icp.row(2)
+    # A finer convergence (the symmetry search's) takes more iterations, a
+    # coarse one stops at the first update.
+    fine = index.refine(cloud, starts_R, starts_t, 30, 0.02, converged=1e-9)
+    coarse = index.refine(cloud, starts_R, starts_t, 30, 0.02, converged=1.0)
+    assert (fine.iterations > icp.iterations).all() and (coarse.iterations == 1).all() and coarse.converged.all()
 
 
 def test_the_model_is_built_once_and_shared_by_maps_and_index():

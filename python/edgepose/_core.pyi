@@ -309,6 +309,7 @@ class ModelIndex:
         max_iterations: int,
         max_distance: float,
         two_cores: bool = False,
+        converged: float = ...,
     ) -> IcpResults: ...
     def pose_distances(
         self,

@@ -45,6 +45,12 @@ NORMAL_AXES = 12
 SCREEN_POINTS = 512
 ICP_ITERATIONS = 15
 ICP_MAX_DIAMETERS = 0.1
+#: The polish stops when an update moves less than this (radians and metres
+#: together: 10 µm), finer than an estimate's ICP, for a codebook stores the
+#: turns it finds. Not hashed into the fingerprint below (the search has
+#: always used it): a change to it is a change of the search, so raise
+#: ``SEARCH_REVISION``.
+ICP_CONVERGED = 1e-5
 #: ... and the screen's looser mean distance (spacings, tangent planes).
 SCREEN_MEAN_SPACINGS = 1.0
 #: Groups larger than this are cut off (a cube has 24 turns).
@@ -224,7 +230,9 @@ def detect_symmetry(model: StandardModel, index: _core.ModelIndex | None = None)
     near = index.distances(screen, R, t, True, loose).mean(axis=1) <= loose
     turns: dict[int, np.ndarray] = {}
     if near.any():
-        icp = index.refine(screen, R[near], t[near], ICP_ITERATIONS, ICP_MAX_DIAMETERS * model.diameter)
+        icp = index.refine(
+            screen, R[near], t[near], ICP_ITERATIONS, ICP_MAX_DIAMETERS * model.diameter, converged=ICP_CONVERGED
+        )
         good = fits(icp.rotations, icp.translations)
         for probe, R_i, t_i, ok in zip(np.flatnonzero(near), icp.rotations, icp.translations, good):
             if ok:
@@ -301,7 +309,7 @@ def _near_turns(
     if not chosen:
         return []
     R, t = np.ascontiguousarray(R[chosen]), np.ascontiguousarray(t[chosen])
-    icp = index.refine(screen, R, t, ICP_ITERATIONS, ICP_MAX_DIAMETERS * model.diameter)
+    icp = index.refine(screen, R, t, ICP_ITERATIONS, ICP_MAX_DIAMETERS * model.diameter, converged=ICP_CONVERGED)
     polished = np.array([_apart(np.eye(3), Ri, NEAR_MIN_ANGLE_DEG) for Ri in icp.rotations])
     R_c = np.where(polished[:, None, None], icp.rotations, R)
     t_c = np.where(polished[:, None], icp.translations, t)

@@ -11,9 +11,13 @@ use crate::index::{ModelIndex, Pose};
 use crate::threads;
 use crate::Point3;
 
-/// ICP has converged when an update's rotation (radians) and translation
-/// (metres) together move less than this: 10 µm, far below depth noise.
-pub const CONVERGED: f64 = 1e-5;
+/// An estimate's ICP has converged when an update's rotation (radians) and
+/// translation (metres) together move less than this: 0.3 mm (or 0.3 mrad),
+/// a tenth of a depth camera's noise at a metre; smaller steps made no pose
+/// right or wrong on the tuning parts (`docs/tuning.md`, "The Rust core's
+/// constants"). The symmetry search, whose turns a codebook stores, asks
+/// for less ([`ModelIndex::refine_until`]).
+pub const CONVERGED: f64 = 3e-4;
 
 /// Damping of ICP's normal equations, relative to their mean diagonal: far
 /// below any constrained direction's curvature, enough to make a view's
@@ -63,8 +67,11 @@ impl ModelIndex {
         max_iterations: usize,
         max_distance: f64,
         two_cores: bool,
+        converged: f64,
     ) -> Vec<IcpResult> {
-        let icp = |start: &Pose| self.refine(cloud, *start, max_iterations, max_distance);
+        let icp = |start: &Pose| {
+            self.refine_until(cloud, *start, max_iterations, max_distance, converged)
+        };
         if starts.len() >= PARALLEL_STARTS {
             threads::install(|| starts.par_iter().map(icp).collect())
         } else if two_cores && starts.len() >= 2 {
@@ -74,7 +81,9 @@ impl ModelIndex {
             let (index, points, job) = (Arc::clone(self), cloud.to_vec(), job.to_vec());
             let later = threads::hand_over(move || {
                 job.iter()
-                    .map(|start| index.refine(&points, *start, max_iterations, max_distance))
+                    .map(|start| {
+                        index.refine_until(&points, *start, max_iterations, max_distance, converged)
+                    })
                     .collect::<Vec<_>>()
             });
             let mut results: Vec<IcpResult> = own.iter().map(icp).collect();
@@ -96,6 +105,19 @@ impl ModelIndex {
         initial: Pose,
         max_iterations: usize,
         max_distance: f64,
+    ) -> IcpResult {
+        self.refine_until(cloud, initial, max_iterations, max_distance, CONVERGED)
+    }
+
+    /// [`refine`](Self::refine) that stops when an update moves less than
+    /// `converged` (radians and metres together).
+    pub fn refine_until(
+        &self,
+        cloud: &[Point3],
+        initial: Pose,
+        max_iterations: usize,
+        max_distance: f64,
+        converged: f64,
     ) -> IcpResult {
         let mut to_model = initial.inverse();
         let mut result = IcpResult {
@@ -172,7 +194,7 @@ impl ModelIndex {
                 inliers,
                 rmse: (sum_sq / inliers.max(1) as f64).sqrt(),
             };
-            if x.norm() < CONVERGED {
+            if x.norm() < converged {
                 result.converged = true;
                 break;
             }
@@ -279,7 +301,7 @@ pub(crate) mod tests {
                 }
             })
             .collect();
-        let each = index.refine_each(&cloud, &starts, 25, 0.05, false);
+        let each = index.refine_each(&cloud, &starts, 25, 0.05, false, CONVERGED);
         assert_eq!(each.len(), starts.len());
         for (start, out) in starts.iter().zip(&each) {
             let alone = index.refine(&cloud, *start, 25, 0.05);
@@ -304,7 +326,7 @@ pub(crate) mod tests {
                 .collect()
         };
         for count in 1..=starts.len() {
-            let split = index.refine_each(&cloud, &starts[..count], 25, 0.05, true);
+            let split = index.refine_each(&cloud, &starts[..count], 25, 0.05, true, CONVERGED);
             assert_eq!(
                 keys(&split),
                 keys(&each[..count]),
@@ -318,7 +340,7 @@ pub(crate) mod tests {
                 .lock()
                 .unwrap_or_else(|p| p.into_inner());
             let release = threads::tests::hold_the_workers();
-            let taken_back = index.refine_each(&cloud, &starts[..3], 25, 0.05, true);
+            let taken_back = index.refine_each(&cloud, &starts[..3], 25, 0.05, true, CONVERGED);
             drop(release);
             assert_eq!(
                 keys(&taken_back),

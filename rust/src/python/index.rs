@@ -17,7 +17,7 @@ use crate::flips::{flip_margin, pose_distances, FlipMargin, FlipSettings};
 use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::query::Pinhole;
-use crate::refine::IcpResult;
+use crate::refine::{IcpResult, CONVERGED};
 use crate::scoring::{align_translations, score_poses, DepthGrid, PoseScore, ScoreSettings};
 use crate::threads::{self, Handed};
 use crate::track::TrackFrameSettings;
@@ -512,8 +512,10 @@ impl PyModelIndex {
     /// (model → camera: `rotations` (H, 3, 3), `translations` (H, 3)): one
     /// result per start, in order. A few starts run one after another, or
     /// with `two_cores` split between this thread and one of the core's;
-    /// many in parallel (`ModelIndex::refine_each`).
-    #[pyo3(signature = (cloud, rotations, translations, max_iterations, max_distance, two_cores = false))]
+    /// many in parallel (`ModelIndex::refine_each`). Each stops when an
+    /// update moves less than `converged` (radians and metres together; an
+    /// estimate's `CONVERGED` by default).
+    #[pyo3(signature = (cloud, rotations, translations, max_iterations, max_distance, two_cores = false, converged = CONVERGED))]
     #[allow(clippy::too_many_arguments)]
     fn refine(
         &self,
@@ -524,13 +526,20 @@ impl PyModelIndex {
         max_iterations: usize,
         max_distance: f64,
         two_cores: bool,
+        converged: f64,
     ) -> PyResult<PyIcpResults> {
         guarded(|| {
             let c = cloud_triples(&cloud, "cloud")?;
             let starts = poses_from(&rotations, &translations)?;
             let results = py.detach(|| {
-                self.inner
-                    .refine_each(c, &starts, max_iterations, max_distance, two_cores)
+                self.inner.refine_each(
+                    c,
+                    &starts,
+                    max_iterations,
+                    max_distance,
+                    two_cores,
+                    converged,
+                )
             });
             Ok(PyIcpResults { results })
         })
