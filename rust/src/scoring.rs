@@ -694,6 +694,14 @@ mod tests {
         (points, normals)
     }
 
+    /// The plate's model index and its camera-facing points posed by
+    /// `truth` (model → camera): what a camera sees of it.
+    fn plate_seen_at(truth: &Pose) -> (ModelIndex, Vec<Point3>) {
+        let (points, normals) = plate_with_knob();
+        let cloud = posed(&points, &normals, truth, true);
+        (ModelIndex::new(points, normals), cloud)
+    }
+
     fn posed(
         points: &[Point3],
         normals: &[Point3],
@@ -742,13 +750,11 @@ mod tests {
 
     #[test]
     fn free_space_rejects_a_flipped_pose_that_surface_fit_cannot() {
-        let (points, normals) = plate_with_knob();
-        let index = ModelIndex::new(points.clone(), normals.clone());
         let truth = Pose {
             rotation: Matrix3::identity(),
             translation: Vector3::new(0.0, 0.0, 0.5),
         };
-        let cloud = posed(&points, &normals, &truth, true);
+        let (index, cloud) = plate_seen_at(&truth);
         let flip = Pose {
             rotation: *Rotation3::from_euler_angles(0.0, std::f64::consts::PI, 0.0).matrix(),
             ..truth
@@ -825,13 +831,11 @@ mod tests {
 
     #[test]
     fn aligning_translations_undoes_a_shift() {
-        let (points, normals) = plate_with_knob();
-        let index = ModelIndex::new(points.clone(), normals.clone());
         let truth = Pose {
             rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.5).matrix(),
             translation: Vector3::new(0.01, 0.0, 0.5),
         };
-        let cloud = posed(&points, &normals, &truth, true);
+        let (index, cloud) = plate_seen_at(&truth);
         let shifted = Pose {
             translation: truth.translation + Vector3::new(0.006, -0.004, 0.008),
             ..truth
@@ -991,17 +995,11 @@ mod tests {
     fn the_chunked_free_space_test_counts_as_point_by_point() {
         // A plate with a knob (300 of its points seen) posed at random near
         // the seen pose, a scene behind it, strides that leave partial chunks.
-        let (points, normals) = plate_with_knob();
-        let index = ModelIndex::new(points.clone(), normals.clone());
-        let seen_pose = Pose {
+        let (index, seen) = plate_seen_at(&Pose {
             rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.1).matrix(),
             translation: Vector3::new(0.01, -0.02, 0.45),
-        };
-        let cloud: Vec<Point3> = posed(&points, &normals, &seen_pose, true)
-            .into_iter()
-            .step_by(7)
-            .take(300)
-            .collect();
+        });
+        let cloud: Vec<Point3> = seen.into_iter().step_by(7).take(300).collect();
         let camera = Pinhole {
             fx: 300.0,
             fy: 300.0,
