@@ -15,8 +15,8 @@ use crate::Point3;
 /// translation (metres) together move less than this: 0.3 mm (or 0.3 mrad),
 /// a tenth of a depth camera's noise at a metre; smaller steps made no pose
 /// right or wrong on the tuning parts (`docs/tuning.md`, "The Rust core's
-/// constants"). The symmetry search, whose turns a codebook stores, asks
-/// for less ([`ModelIndex::refine_until`]).
+/// constants"). The symmetry search, whose turns a codebook stores, stops
+/// at finer steps ([`ModelIndex::refine_until`]).
 pub const CONVERGED: f64 = 3e-4;
 
 /// Damping of ICP's normal equations, relative to their mean diagonal: far
@@ -48,8 +48,8 @@ pub struct IcpResult {
 }
 
 impl ModelIndex {
-    /// [`refine`](Self::refine) from each of several `starts`: one result per
-    /// start, in order. Refining a few distinct hypotheses and keeping the
+    /// [`refine_until`](Self::refine_until) `converged` from each of several
+    /// `starts`: one result per start, in order. Refining a few distinct hypotheses and keeping the
     /// best fit resolves near-symmetric objects whose turned-over pose
     /// verifies almost as well as the true one. Fewer than
     /// [`PARALLEL_STARTS`] starts run in the calling thread (a few
