@@ -112,6 +112,16 @@ fn bench_search(c: &mut Criterion) {
     group.bench_function("nearest_1024_points_near_surface/grid", |b| {
         b.iter(|| near.iter().map(|q| index.nearest(q).1).sum::<f32>())
     });
+    // The same queries at once, as ICP, alignment and scoring ask them.
+    group.bench_function("nearest_1024_points_near_surface/grid_batch", |b| {
+        b.iter(|| {
+            index
+                .nearest_each_within(&near, f64::INFINITY)
+                .iter()
+                .map(|found| found.map_or(0.0, |(_, sq)| sq))
+                .sum::<f32>()
+        })
+    });
     group.bench_function("nearest_1024_points_near_surface/kd_tree", |b| {
         b.iter(|| near.iter().map(|q| index.nearest_in_tree(q).1).sum::<f32>())
     });

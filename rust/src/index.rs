@@ -143,6 +143,27 @@ impl ModelIndex {
         ((squared as f64).sqrt() <= max_distance).then_some((i, squared))
     }
 
+    /// [`nearest_within`](Self::nearest_within) of each of `queries`, in
+    /// order: the same answers, with the look-ups' memory loads overlapped
+    /// (ICP asks for a whole cloud at once).
+    pub fn nearest_each_within(
+        &self,
+        queries: &[Point3],
+        max_distance: f64,
+    ) -> Vec<Option<(usize, f32)>> {
+        let mut found = Vec::with_capacity(queries.len());
+        self.cells
+            .nearest_each(queries, max_distance, &self.points, |p, lookup| {
+                let (i, squared) = match lookup {
+                    Lookup::Found(i, squared) => (i, squared),
+                    Lookup::Beyond => return found.push(None),
+                    Lookup::Unknown => self.nearest_in_tree(p),
+                };
+                found.push(((squared as f64).sqrt() <= max_distance).then_some((i, squared)));
+            });
+        found
+    }
+
     /// [`nearest`](Self::nearest) through the kd-tree alone.
     pub fn nearest_in_tree(&self, p: &[f32; 3]) -> (usize, f32) {
         let nn = self.tree.nearest_one::<SquaredEuclidean>(p);
@@ -614,6 +635,48 @@ impl CellIndex {
         if !fine.is_empty() {
             return nearest_in_list(p, fine, model);
         }
+        self.nearest_off_lists(p, max_distance, model)
+    }
+
+    /// [`nearest`](Self::nearest) of each of `queries`, in order, handed to
+    /// `answer(query, lookup)`. Most queries lie near the surface, where a
+    /// look-up is two dependent memory loads (the cell's list, its items)
+    /// that mostly miss the cache: where each query's list lies is read
+    /// first for all of them, in a loop with no other work, so those loads
+    /// overlap instead of waiting one after the other.
+    fn nearest_each(
+        &self,
+        queries: &[Point3],
+        max_distance: f64,
+        model: &[Point3],
+        mut answer: impl FnMut(&Point3, Lookup),
+    ) {
+        if model.is_empty() {
+            return queries.iter().for_each(|p| answer(p, Lookup::Unknown));
+        }
+        let lists = &self.lists;
+        let runs: Vec<(u32, u32)> = queries
+            .iter()
+            .map(|p| match lists.grid.coordinates(p) {
+                Some(g) => {
+                    let c = lists.grid.flat(g);
+                    (lists.starts[c], lists.starts[c + 1])
+                }
+                None => (0, 0),
+            })
+            .collect();
+        for (p, &(a, b)) in queries.iter().zip(&runs) {
+            let lookup = if a < b {
+                nearest_in_list(p, &lists.items[a as usize..b as usize], model)
+            } else {
+                self.nearest_off_lists(p, max_distance, model)
+            };
+            answer(p, lookup);
+        }
+    }
+
+    /// [`nearest`](Self::nearest) of a query whose cell holds no fine list.
+    fn nearest_off_lists(&self, p: &[f32; 3], max_distance: f64, model: &[Point3]) -> Lookup {
         let grid = &self.grid;
         let Some(g) = grid.coordinates(p) else {
             return if max_distance < self.margin {

@@ -128,12 +128,20 @@ impl ModelIndex {
             rmse: f64::NAN,
         };
         let mut pairs: Vec<Pair> = Vec::with_capacity(cloud.len());
+        let mut sources: Vec<Vector3<f64>> = Vec::with_capacity(cloud.len());
+        let mut queries: Vec<Point3> = Vec::with_capacity(cloud.len());
         for iteration in 1..=max_iterations {
             pairs.clear();
+            sources.clear();
+            queries.clear();
             for p in cloud {
                 let source = to_model.apply(p);
-                let query = [source.x as f32, source.y as f32, source.z as f32];
-                if let Some((i, sq)) = self.nearest_within(&query, max_distance) {
+                queries.push([source.x as f32, source.y as f32, source.z as f32]);
+                sources.push(source);
+            }
+            let found = self.nearest_each_within(&queries, max_distance);
+            for (&source, found) in sources.iter().zip(found) {
+                if let Some((i, sq)) = found {
                     let d = (sq as f64).sqrt();
                     let q = self.points()[i];
                     let n = self.normals()[i];
@@ -407,5 +415,46 @@ pub(crate) mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn a_batch_of_look_ups_answers_as_one_at_a_time() {
+        let model = bracket();
+        let index = ModelIndex::new(model.points.clone(), model.normals.clone());
+        // Near the surface, off it, far beyond the grid and not finite.
+        let mut queries: Vec<Point3> = model
+            .points
+            .iter()
+            .step_by(3)
+            .enumerate()
+            .map(|(k, p)| {
+                let reach = [0.0005f32, 0.004, 0.03, 0.4][k % 4];
+                let turn = k as f32 * 0.7;
+                [
+                    p[0] + reach * turn.cos(),
+                    p[1] + reach * turn.sin(),
+                    p[2] - reach,
+                ]
+            })
+            .collect();
+        queries.extend([[f32::NAN, 0.0, 0.0], [1e30, 0.0, 0.0]]);
+        for max_distance in [0.001, 0.01, 0.1, f64::INFINITY] {
+            let one_at_a_time: Vec<_> = queries
+                .iter()
+                .map(|q| index.nearest_within(q, max_distance))
+                .collect();
+            assert_eq!(
+                index.nearest_each_within(&queries, max_distance),
+                one_at_a_time
+            );
+        }
+        let empty = ModelIndex::new(Vec::new(), Vec::new());
+        assert_eq!(
+            empty.nearest_each_within(&queries[..2], 0.1),
+            queries[..2]
+                .iter()
+                .map(|q| empty.nearest_within(q, 0.1))
+                .collect::<Vec<_>>()
+        );
     }
 }

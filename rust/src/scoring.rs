@@ -375,10 +375,10 @@ pub fn align_translations(
         for _ in 0..iterations {
             let to_model = pose.inverse();
             let (mut shift, mut paired) = (Vector3::zeros(), 0usize);
-            for p in observed {
-                let m = to_model.apply(p);
-                let m32 = [m.x as f32, m.y as f32, m.z as f32];
-                if let Some((i, _)) = index.nearest_within(&m32, max_distance) {
+            let moved: Vec<Vector3<f64>> = observed.iter().map(|p| to_model.apply(p)).collect();
+            let found = index.nearest_each_within(&as_f32(&moved), max_distance);
+            for (&m, found) in moved.iter().zip(found) {
+                if let Some((i, _)) = found {
                     let q = index.points()[i];
                     shift += Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64) - m;
                     paired += 1;
@@ -392,6 +392,14 @@ pub fn align_translations(
         }
         pose
     })
+}
+
+/// Model-frame points (metres) as the f32 queries of the model's index.
+fn as_f32(points: &[Vector3<f64>]) -> Vec<Point3> {
+    points
+        .iter()
+        .map(|m| [m.x as f32, m.y as f32, m.z as f32])
+        .collect()
 }
 
 /// Poses handled at once in parallel from this many on (the second search's
@@ -602,14 +610,11 @@ fn score_pose(
     let to_model = pose.inverse();
     let (mut total, mut inliers) = (0.0f64, 0usize);
     let mut normal_spread = Matrix3::<f64>::zeros();
-    for p in observed {
-        let m = to_model.apply(p);
-        // Beyond the inlier distance a pair counts as that distance: its
-        // nearest model point need not be found.
-        match index.nearest_within(
-            &[m.x as f32, m.y as f32, m.z as f32],
-            settings.inlier_distance,
-        ) {
+    let moved: Vec<Vector3<f64>> = observed.iter().map(|p| to_model.apply(p)).collect();
+    // Beyond the inlier distance a pair counts as that distance: its
+    // nearest model point need not be found.
+    for found in index.nearest_each_within(&as_f32(&moved), settings.inlier_distance) {
+        match found {
             Some((i, sq)) => {
                 inliers += 1;
                 total += (sq as f64).sqrt();
