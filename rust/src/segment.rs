@@ -149,7 +149,7 @@ pub fn segment(cloud: &[Point3], diameter: f64, settings: &SegmentSettings) -> S
     // order does not matter: a component's root is its lowest index.
     let mut pairs: Vec<(u32, u32)> = Vec::with_capacity(32 * n);
     let mut counts = vec![0.0f64; n];
-    CellGrid::new(cloud, radius).for_each_near(radius, None, |i, near| {
+    CellGrid::new(cloud, radius).for_each_neighbourhood(radius, |i, near| {
         counts[i] += near.len() as f64;
         for &j in near {
             pairs.push((i as u32, j));
@@ -493,7 +493,7 @@ fn in_shadow(
         .map(|&i| [cloud[i][0] / cloud[i][2], cloud[i][1] / cloud[i][2], 0.0])
         .collect();
     let roots: Vec<usize> = front.iter().map(|&i| root_of[i]).collect();
-    CellGrid::new(&rays, reach.max(1e-9)).for_each_near(reach, Some(&roots), |a, near| {
+    CellGrid::new(&rays, reach.max(1e-9)).for_each_near(reach, &roots, |a, near| {
         for &b in near {
             let (i, j) = (front[a], front[b as usize]);
             let behind = (cloud[i][2] - cloud[j][2]) as f64;
@@ -628,53 +628,86 @@ impl CellGrid {
     }
 
     /// Visits every unordered pair of distinct points at most `within`
-    /// apart (no more than a cube's side) once, in batches: `visit(i, near)`
-    /// gets point `i` and some of its partners `near`. Cube by cube in a
-    /// fixed order: the pairs within a cube, then those with each run of
-    /// neighbouring cubes that sort after it (so no pair is seen twice).
-    /// With `labels` (one per point), only pairs of differently labelled
-    /// points, and cubes whose points all share one label are not paired
-    /// with each other: most of a cloud is one component, and its pairs are
-    /// skipped wholesale.
-    fn for_each_near(
-        &self,
-        within: f32,
-        labels: Option<&[usize]>,
-        mut visit: impl FnMut(usize, &[u32]),
-    ) {
+    /// apart (no more than a cube's side) once: `visit(i, near)` gets each
+    /// point `i` with all its partners at once, those after it in its cube
+    /// and the next one along z, then those in the other cubes that sort
+    /// after its cube (in that order): the pairs
+    /// [`for_each_near`](Self::for_each_near) visits when every label
+    /// differs, point by point instead of run by run. Each cube's partner
+    /// cubes are copied into one buffer, which a point scans eight partners
+    /// at a time where AVX2 is present (a run is a few points; a buffer is
+    /// dozens).
+    fn for_each_neighbourhood(&self, within: f32, mut visit: impl FnMut(usize, &[u32])) {
+        let limit = within * within;
+        let (order, starts, dims) = (&self.order, &self.starts, self.grid.dims);
+        let mut partners = Partners::default();
+        let mut near: Vec<u32> = Vec::new();
+        for c in 0..self.grid.count() {
+            let (a, b) = (starts[c] as usize, starts[c + 1] as usize);
+            if a == b {
+                continue;
+            }
+            let g = [
+                c as i32 / (dims[1] * dims[2]),
+                (c as i32 / dims[2]) % dims[1],
+                c as i32 % dims[2],
+            ];
+            partners.clear();
+            // The cube's own points and the next cube's along z: one run.
+            let up = if g[2] + 1 < dims[2] { c + 1 } else { c };
+            partners.extend(self, a, starts[up + 1] as usize);
+            for &([dx, dy], z0, z1) in &LATER_CUBES[1..] {
+                let (x, y) = (g[0] + dx, g[1] + dy);
+                let (z0, z1) = ((g[2] + z0).max(0), (g[2] + z1).min(dims[2] - 1));
+                if x < 0 || x >= dims[0] || y < 0 || y >= dims[1] || z0 > z1 {
+                    continue;
+                }
+                let (first, last) = (self.grid.flat([x, y, z0]), self.grid.flat([x, y, z1]));
+                partners.extend(self, starts[first] as usize, starts[last + 1] as usize);
+            }
+            partners.pad();
+            near.resize(partners.len() + LANES, 0);
+            for (x, &i) in order[a..b].iter().enumerate() {
+                let p = [self.xs[a + x], self.ys[a + x], self.zs[a + x]];
+                // Within the cube, only the points after this one.
+                let found = partners.near(x + 1, p, limit, &mut near);
+                if found > 0 {
+                    visit(i as usize, &near[..found]);
+                }
+            }
+        }
+    }
+
+    /// Visits every unordered pair of distinct points at most `within`
+    /// apart (no more than a cube's side) whose `labels` (one per point)
+    /// differ once, in batches: `visit(i, near)` gets point `i` and some of
+    /// its partners `near`. Cube by cube in a fixed order: the pairs within
+    /// a cube, then those with each run of neighbouring cubes that sort
+    /// after it (so no pair is seen twice). Cubes whose points all share
+    /// one label are not paired with each other: most of a cloud is one
+    /// component, and its pairs are skipped wholesale.
+    fn for_each_near(&self, within: f32, labels: &[usize], mut visit: impl FnMut(usize, &[u32])) {
         let limit = within * within;
         let (order, starts) = (&self.order, &self.starts);
         let dims = self.grid.dims;
         let count = self.grid.count();
         /// A cube without points.
         const EMPTY: usize = usize::MAX;
-        /// A cube whose points carry different labels (or no labels given).
+        /// A cube whose points carry different labels.
         const MIXED: usize = usize::MAX - 1;
-        let cube_labels: Vec<usize> = match labels {
-            None => Vec::new(),
-            Some(labels) => (0..count)
-                .map(|c| {
-                    let mine = &order[starts[c] as usize..starts[c + 1] as usize];
-                    match mine.first().map(|&i| labels[i as usize]) {
-                        None => EMPTY,
-                        Some(first) if mine.iter().all(|&i| labels[i as usize] == first) => first,
-                        Some(_) => MIXED,
-                    }
-                })
-                .collect(),
-        };
-        let label_of = |c: usize| cube_labels.get(c).copied().unwrap_or(MIXED);
-        let differ = |i: u32, j: u32| labels.is_none_or(|l| l[i as usize] != l[j as usize]);
-        // The neighbouring cubes that sort after a cube (lexicographically by
-        // offset), as runs along z: (0, 0, +1), then the columns (0, +1),
-        // (+1, −1), (+1, 0) and (+1, +1), each from z − 1 to z + 1.
-        let columns: [([i32; 2], i32, i32); 5] = [
-            ([0, 0], 1, 1),
-            ([0, 1], -1, 1),
-            ([1, -1], -1, 1),
-            ([1, 0], -1, 1),
-            ([1, 1], -1, 1),
-        ];
+        let cube_labels: Vec<usize> = (0..count)
+            .map(|c| {
+                let mine = &order[starts[c] as usize..starts[c + 1] as usize];
+                match mine.first().map(|&i| labels[i as usize]) {
+                    None => EMPTY,
+                    Some(first) if mine.iter().all(|&i| labels[i as usize] == first) => first,
+                    Some(_) => MIXED,
+                }
+            })
+            .collect();
+        let label_of = |c: usize| cube_labels[c];
+        let differ = |i: u32, j: u32| labels[i as usize] != labels[j as usize];
+        let columns = LATER_CUBES;
         let mut runs: Vec<(usize, usize)> = Vec::with_capacity(columns.len());
         let mut near: Vec<u32> = Vec::new();
         for c in 0..count {
@@ -752,6 +785,157 @@ impl CellGrid {
         }
     }
 }
+
+/// The neighbouring cubes that sort after a cube (lexicographically by
+/// offset), as runs along z: (0, 0, +1), then the columns (0, +1),
+/// (+1, −1), (+1, 0) and (+1, +1), each from z − 1 to z + 1.
+const LATER_CUBES: [([i32; 2], i32, i32); 5] = [
+    ([0, 0], 1, 1),
+    ([0, 1], -1, 1),
+    ([1, -1], -1, 1),
+    ([1, 0], -1, 1),
+    ([1, 1], -1, 1),
+];
+
+/// Points scanned together by [`Partners::near`] (and its padding).
+const LANES: usize = 8;
+
+/// The points of a cube's partner cubes, copied into one buffer
+/// ([`CellGrid::for_each_neighbourhood`]): coordinates and point indices,
+/// then [`LANES`] points at infinity, which are near nothing.
+#[derive(Default)]
+struct Partners {
+    xs: Vec<f32>,
+    ys: Vec<f32>,
+    zs: Vec<f32>,
+    index: Vec<u32>,
+}
+
+impl Partners {
+    fn clear(&mut self) {
+        for axis in [&mut self.xs, &mut self.ys, &mut self.zs] {
+            axis.clear();
+        }
+        self.index.clear();
+    }
+
+    /// Appends the grid's points `from..to` (in cube order).
+    fn extend(&mut self, grid: &CellGrid, from: usize, to: usize) {
+        self.xs.extend_from_slice(&grid.xs[from..to]);
+        self.ys.extend_from_slice(&grid.ys[from..to]);
+        self.zs.extend_from_slice(&grid.zs[from..to]);
+        self.index.extend_from_slice(&grid.order[from..to]);
+    }
+
+    /// Ends the buffer with the padding a scan may read past its last point.
+    fn pad(&mut self) {
+        for axis in [&mut self.xs, &mut self.ys, &mut self.zs] {
+            axis.extend_from_slice(&[f32::INFINITY; LANES]);
+        }
+        self.index.extend_from_slice(&[0; LANES]);
+    }
+
+    /// Points held, padding aside.
+    fn len(&self) -> usize {
+        self.index.len() - LANES
+    }
+
+    /// Writes to the front of `near` (at least [`len`](Self::len) +
+    /// [`LANES`] entries) the indices of the points from `start` on whose
+    /// squared distance to `p` is at most `limit`, in order, and returns
+    /// how many.
+    fn near(&self, start: usize, p: Point3, limit: f32, near: &mut [u32]) -> usize {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is present (checked above).
+            return unsafe { self.near_avx2(start, p, limit, near) };
+        }
+        self.near_one_at_a_time(start, p, limit, near)
+    }
+
+    /// [`near`](Self::near), one point at a time.
+    fn near_one_at_a_time(&self, start: usize, p: Point3, limit: f32, near: &mut [u32]) -> usize {
+        let mut found = 0;
+        let end = self.len();
+        let points = self.xs[start..end]
+            .iter()
+            .zip(&self.ys[start..end])
+            .zip(&self.zs[start..end])
+            .zip(&self.index[start..end]);
+        for (((&qx, &qy), &qz), &j) in points {
+            let d =
+                (qx - p[0]) * (qx - p[0]) + (qy - p[1]) * (qy - p[1]) + (qz - p[2]) * (qz - p[2]);
+            // Written whether near or not: no branch on a coin toss.
+            near[found] = j;
+            found += (d <= limit) as usize;
+        }
+        found
+    }
+
+    /// [`near`](Self::near) eight points at a time: the distances in the
+    /// scalar loop's operation order (no fused multiply-add), the near
+    /// points' indices packed to the front of each eight and stored at once.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn near_avx2(&self, start: usize, p: Point3, limit: f32, near: &mut [u32]) -> usize {
+        use std::arch::x86_64::*;
+        let end = self.len();
+        // Every load of eight from k < end ends within the padding, every
+        // store at `found` ≤ k − start within `near`.
+        assert!(start <= end && near.len() >= end + LANES);
+        let (px, py, pz) = (
+            _mm256_set1_ps(p[0]),
+            _mm256_set1_ps(p[1]),
+            _mm256_set1_ps(p[2]),
+        );
+        let limit = _mm256_set1_ps(limit);
+        let (mut k, mut found) = (start, 0);
+        while k < end {
+            // SAFETY: see the assertion above.
+            unsafe {
+                let dx = _mm256_sub_ps(_mm256_loadu_ps(self.xs.as_ptr().add(k)), px);
+                let dy = _mm256_sub_ps(_mm256_loadu_ps(self.ys.as_ptr().add(k)), py);
+                let dz = _mm256_sub_ps(_mm256_loadu_ps(self.zs.as_ptr().add(k)), pz);
+                let d = _mm256_add_ps(
+                    _mm256_add_ps(_mm256_mul_ps(dx, dx), _mm256_mul_ps(dy, dy)),
+                    _mm256_mul_ps(dz, dz),
+                );
+                let within = _mm256_cmp_ps::<_CMP_LE_OQ>(d, limit);
+                // Lanes past the last point hold infinity: never within.
+                let mask = _mm256_movemask_ps(within) as usize;
+                let lanes = _mm256_loadu_si256(PACKED_LANES[mask].as_ptr() as *const __m256i);
+                let indices = _mm256_loadu_si256(self.index.as_ptr().add(k) as *const __m256i);
+                _mm256_storeu_si256(
+                    near.as_mut_ptr().add(found) as *mut __m256i,
+                    _mm256_permutevar8x32_epi32(indices, lanes),
+                );
+                found += mask.count_ones() as usize;
+            }
+            k += LANES;
+        }
+        found
+    }
+}
+
+/// For each 8-bit mask, the positions of its set bits in order (the rest
+/// 0): the permutation that packs the chosen lanes of eight to the front.
+#[cfg(target_arch = "x86_64")]
+static PACKED_LANES: [[u32; 8]; 256] = {
+    let mut table = [[0u32; 8]; 256];
+    let mut mask = 0;
+    while mask < 256 {
+        let (mut lane, mut next) = (0, 0);
+        while lane < 8 {
+            if mask & (1 << lane) != 0 {
+                table[mask][next] = lane as u32;
+                next += 1;
+            }
+            lane += 1;
+        }
+        mask += 1;
+    }
+    table
+};
 
 /// The indices `i` for which `chosen(i)`, ordered by `label[i]` (labels
 /// below `label.len()`), ascending within a label.
@@ -1246,11 +1430,16 @@ mod tests {
         let labels: Vec<usize> = (0..cloud.len())
             .map(|i| (cloud[i][0] > 0.01) as usize)
             .collect();
+        let grid = CellGrid::new(&cloud, within);
         for labels in [None, Some(&labels[..])] {
             let mut found = Vec::new();
-            CellGrid::new(&cloud, within).for_each_near(within, labels, |i, near| {
+            let add = |i: usize, near: &[u32]| {
                 found.extend(near.iter().map(|&j| (i.min(j as usize), i.max(j as usize))));
-            });
+            };
+            match labels {
+                Some(labels) => grid.for_each_near(within, labels, add),
+                None => grid.for_each_neighbourhood(within, add),
+            }
             let mut expected = Vec::new();
             for i in 0..cloud.len() {
                 for j in i + 1..cloud.len() {
@@ -1265,6 +1454,37 @@ mod tests {
             found.dedup();
             assert_eq!(found.len(), count, "a pair was visited twice");
             assert_eq!(found, expected);
+        }
+    }
+
+    #[test]
+    fn partners_near_a_point_are_the_same_eight_at_a_time_as_one_at_a_time() {
+        let cloud = random_box_surface(61, 5);
+        let grid = CellGrid::new(&cloud, 1.0);
+        for (end, p) in [(61, cloud[0]), (16, cloud[7]), (7, cloud[3]), (0, cloud[1])] {
+            let mut partners = Partners::default();
+            partners.extend(&grid, 0, end);
+            partners.pad();
+            // A limit exactly at the middle point's squared distance: it is near.
+            let middle = end / 2;
+            let exact = (grid.xs[middle] - p[0]) * (grid.xs[middle] - p[0])
+                + (grid.ys[middle] - p[1]) * (grid.ys[middle] - p[1])
+                + (grid.zs[middle] - p[2]) * (grid.zs[middle] - p[2]);
+            for start in [0, 1, 3, end].map(|s| s.min(end)) {
+                for limit in [0.0, 1e-4, exact, 1.0] {
+                    let (mut fast, mut slow) = (vec![0; end + LANES], vec![0; end + LANES]);
+                    let count = partners.near(start, p, limit, &mut fast);
+                    let expected = partners.near_one_at_a_time(start, p, limit, &mut slow);
+                    assert_eq!(
+                        fast[..count],
+                        slow[..expected],
+                        "from {start} within {limit}"
+                    );
+                    if limit == exact && start <= middle && middle < end {
+                        assert!(fast[..count].contains(&grid.order[middle]));
+                    }
+                }
+            }
         }
     }
 
