@@ -393,13 +393,18 @@ impl Grid {
 
     /// The centre of cell `c` (a [`flat`](Self::flat) index), metres.
     fn centre(&self, c: usize) -> [f32; 3] {
+        let g = self.unflat(c);
+        std::array::from_fn(|a| self.origin[a] + (g[a] as f32 + 0.5) * self.cell)
+    }
+
+    /// The coordinates of cell `c` (a [`flat`](Self::flat) index).
+    pub(crate) fn unflat(&self, c: usize) -> [i32; 3] {
         let d = self.dims;
-        let g = [
+        [
             c as i32 / (d[1] * d[2]),
             (c as i32 / d[2]) % d[1],
             c as i32 % d[2],
-        ];
-        std::array::from_fn(|a| self.origin[a] + (g[a] as f32 + 0.5) * self.cell)
+        ]
     }
 }
 

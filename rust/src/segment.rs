@@ -627,6 +627,22 @@ impl CellGrid {
         Some(())
     }
 
+    /// The runs of cubes (first and last cube, as [`Grid::flat`] indices)
+    /// of `columns` of [`LATER_CUBES`] around cube `g` that lie in the grid.
+    fn runs_of<'a>(
+        &'a self,
+        g: [i32; 3],
+        columns: &'a [([i32; 2], i32, i32)],
+    ) -> impl Iterator<Item = (usize, usize)> + 'a {
+        let dims = self.grid.dims;
+        columns.iter().filter_map(move |&([dx, dy], z0, z1)| {
+            let (x, y) = (g[0] + dx, g[1] + dy);
+            let (z0, z1) = ((g[2] + z0).max(0), (g[2] + z1).min(dims[2] - 1));
+            (x >= 0 && x < dims[0] && y >= 0 && y < dims[1] && z0 <= z1)
+                .then(|| (self.grid.flat([x, y, z0]), self.grid.flat([x, y, z1])))
+        })
+    }
+
     /// Visits every unordered pair of distinct points at most `within`
     /// apart (no more than a cube's side) once: `visit(i, near)` gets each
     /// point `i` with all its partners at once, those after it in its cube
@@ -647,22 +663,12 @@ impl CellGrid {
             if a == b {
                 continue;
             }
-            let g = [
-                c as i32 / (dims[1] * dims[2]),
-                (c as i32 / dims[2]) % dims[1],
-                c as i32 % dims[2],
-            ];
+            let g = self.grid.unflat(c);
             partners.clear();
             // The cube's own points and the next cube's along z: one run.
             let up = if g[2] + 1 < dims[2] { c + 1 } else { c };
             partners.extend(self, a, starts[up + 1] as usize);
-            for &([dx, dy], z0, z1) in &LATER_CUBES[1..] {
-                let (x, y) = (g[0] + dx, g[1] + dy);
-                let (z0, z1) = ((g[2] + z0).max(0), (g[2] + z1).min(dims[2] - 1));
-                if x < 0 || x >= dims[0] || y < 0 || y >= dims[1] || z0 > z1 {
-                    continue;
-                }
-                let (first, last) = (self.grid.flat([x, y, z0]), self.grid.flat([x, y, z1]));
+            for (first, last) in self.runs_of(g, &LATER_CUBES[1..]) {
                 partners.extend(self, starts[first] as usize, starts[last + 1] as usize);
             }
             partners.pad();
@@ -707,8 +713,7 @@ impl CellGrid {
             .collect();
         let label_of = |c: usize| cube_labels[c];
         let differ = |i: u32, j: u32| labels[i as usize] != labels[j as usize];
-        let columns = LATER_CUBES;
-        let mut runs: Vec<(usize, usize)> = Vec::with_capacity(columns.len());
+        let mut runs: Vec<(usize, usize)> = Vec::with_capacity(LATER_CUBES.len());
         let mut near: Vec<u32> = Vec::new();
         for c in 0..count {
             let (a, b) = (starts[c] as usize, starts[c + 1] as usize);
@@ -717,23 +722,13 @@ impl CellGrid {
             }
             let label = label_of(c);
             let pure = label != MIXED;
-            let g = [
-                c as i32 / (dims[1] * dims[2]),
-                (c as i32 / dims[2]) % dims[1],
-                c as i32 % dims[2],
-            ];
+            let g = self.grid.unflat(c);
             runs.clear();
             // A mixed cube's own points pair among themselves and with the
             // next cube along z, which follows them: one run.
             let up = if g[2] + 1 < dims[2] { c + 1 } else { c };
             let own = (!pure).then_some((a, starts[up + 1] as usize));
-            for &([dx, dy], z0, z1) in &columns[own.map_or(0, |_| 1)..] {
-                let (x, y) = (g[0] + dx, g[1] + dy);
-                let (z0, z1) = ((g[2] + z0).max(0), (g[2] + z1).min(dims[2] - 1));
-                if x < 0 || x >= dims[0] || y < 0 || y >= dims[1] || z0 > z1 {
-                    continue;
-                }
-                let (first, last) = (self.grid.flat([x, y, z0]), self.grid.flat([x, y, z1]));
+            for (first, last) in self.runs_of(g, &LATER_CUBES[own.map_or(0, |_| 1)..]) {
                 let (ra, rb) = (starts[first] as usize, starts[last + 1] as usize);
                 // A pure cube is not paired with a run of cubes all of its label.
                 if ra < rb
