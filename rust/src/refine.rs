@@ -162,7 +162,9 @@ impl ModelIndex {
             let cutoff = (3.0 * median).max(1e-4);
 
             // Linearised: residual (s + ω×s + δt − q)·n = 0 for the update (ω, δt).
-            let mut jtj = Matrix6::<f64>::zeros();
+            // JᵀJ is symmetric: its upper triangle is summed (each entry the
+            // same products in the same order as the whole outer product's).
+            let mut upper = [0.0f64; 21];
             let mut jtr = Vector6::<f64>::zeros();
             let (mut inliers, mut sum_sq) = (0usize, 0.0f64);
             for (s, q, n, d) in &pairs {
@@ -172,10 +174,24 @@ impl ModelIndex {
                 let r = (s - q).dot(n);
                 let c = s.cross(n);
                 let j = Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z);
-                jtj += j * j.transpose();
+                let mut k = 0;
+                for a in 0..6 {
+                    for b in a..6 {
+                        upper[k] += j[a] * j[b];
+                        k += 1;
+                    }
+                }
                 jtr += j * r;
                 inliers += 1;
                 sum_sq += r * r;
+            }
+            let mut jtj = Matrix6::<f64>::zeros();
+            let mut k = 0;
+            for a in 0..6 {
+                for b in a..6 {
+                    (jtj[(a, b)], jtj[(b, a)]) = (upper[k], upper[k]);
+                    k += 1;
+                }
             }
             // A view that leaves a direction unconstrained (one face of a
             // box: no normal along it) makes JᵀJ singular; a little damping
