@@ -135,7 +135,14 @@ impl ModelIndex {
     /// for points far from the model too: ICP, scoring and alignment ignore
     /// or truncate pairs beyond a distance, so they need not be found.
     pub fn nearest_within(&self, p: &[f32; 3], max_distance: f64) -> Option<(usize, f32)> {
-        let (i, squared) = match self.cells.nearest(p, max_distance, &self.points) {
+        let lookup = self.cells.nearest(p, max_distance, &self.points);
+        self.within(p, lookup, max_distance)
+    }
+
+    /// The grid's `lookup` of `p` as [`nearest_within`](Self::nearest_within)
+    /// answers it: the kd-tree where the grid cannot tell.
+    fn within(&self, p: &[f32; 3], lookup: Lookup, max_distance: f64) -> Option<(usize, f32)> {
+        let (i, squared) = match lookup {
             Lookup::Found(i, squared) => (i, squared),
             Lookup::Beyond => return None,
             Lookup::Unknown => self.nearest_in_tree(p),
@@ -154,12 +161,7 @@ impl ModelIndex {
         let mut found = Vec::with_capacity(queries.len());
         self.cells
             .nearest_each(queries, max_distance, &self.points, |p, lookup| {
-                let (i, squared) = match lookup {
-                    Lookup::Found(i, squared) => (i, squared),
-                    Lookup::Beyond => return found.push(None),
-                    Lookup::Unknown => self.nearest_in_tree(p),
-                };
-                found.push(((squared as f64).sqrt() <= max_distance).then_some((i, squared)));
+                found.push(self.within(p, lookup, max_distance));
             });
         found
     }
@@ -196,6 +198,14 @@ const MAX_RING: i32 = 2;
 /// beyond the box: ICP, scoring and alignment never look farther than 0.1
 /// diameters, so [`ModelIndex::nearest_within`] answers them all here.
 const MARGIN_DIAGONALS: f64 = 0.15;
+
+/// Model-frame points (metres, f64) as the f32 queries of a [`ModelIndex`].
+pub(crate) fn as_queries(points: &[Vector3<f64>]) -> Vec<Point3> {
+    points
+        .iter()
+        .map(|m| [m.x as f32, m.y as f32, m.z as f32])
+        .collect()
+}
 
 /// What the grid knows about a query's nearest model point.
 enum Lookup {
@@ -510,9 +520,18 @@ impl CandidateLists {
 
     /// The list of `p`'s cell: empty outside the box or far from the model.
     fn of(&self, p: &[f32; 3]) -> &[u16] {
+        let (a, b) = self.span_of(p);
+        &self.items[a as usize..b as usize]
+    }
+
+    /// Where `p`'s list lies in `items` (empty outside the box).
+    fn span_of(&self, p: &[f32; 3]) -> (u32, u32) {
         match self.grid.coordinates(p) {
-            Some(g) => self.at(self.grid.flat(g)),
-            None => &[],
+            Some(g) => {
+                let c = self.grid.flat(g);
+                (self.starts[c], self.starts[c + 1])
+            }
+            None => (0, 0),
         }
     }
 
@@ -660,17 +679,8 @@ impl CellIndex {
             return queries.iter().for_each(|p| answer(p, Lookup::Unknown));
         }
         let lists = &self.lists;
-        let runs: Vec<(u32, u32)> = queries
-            .iter()
-            .map(|p| match lists.grid.coordinates(p) {
-                Some(g) => {
-                    let c = lists.grid.flat(g);
-                    (lists.starts[c], lists.starts[c + 1])
-                }
-                None => (0, 0),
-            })
-            .collect();
-        for (p, &(a, b)) in queries.iter().zip(&runs) {
+        let spans: Vec<(u32, u32)> = queries.iter().map(|p| lists.span_of(p)).collect();
+        for (p, &(a, b)) in queries.iter().zip(&spans) {
             let lookup = if a < b {
                 nearest_in_list(p, &lists.items[a as usize..b as usize], model)
             } else {

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
 use rayon::prelude::*;
 
-use crate::index::{ModelIndex, Pose};
+use crate::index::{as_queries, ModelIndex, Pose};
 use crate::threads;
 use crate::Point3;
 
@@ -128,18 +128,10 @@ impl ModelIndex {
             rmse: f64::NAN,
         };
         let mut pairs: Vec<Pair> = Vec::with_capacity(cloud.len());
-        let mut sources: Vec<Vector3<f64>> = Vec::with_capacity(cloud.len());
-        let mut queries: Vec<Point3> = Vec::with_capacity(cloud.len());
         for iteration in 1..=max_iterations {
             pairs.clear();
-            sources.clear();
-            queries.clear();
-            for p in cloud {
-                let source = to_model.apply(p);
-                queries.push([source.x as f32, source.y as f32, source.z as f32]);
-                sources.push(source);
-            }
-            let found = self.nearest_each_within(&queries, max_distance);
+            let sources: Vec<Vector3<f64>> = cloud.iter().map(|p| to_model.apply(p)).collect();
+            let found = self.nearest_each_within(&as_queries(&sources), max_distance);
             for (&source, found) in sources.iter().zip(found) {
                 if let Some((i, sq)) = found {
                     let d = (sq as f64).sqrt();
@@ -164,7 +156,7 @@ impl ModelIndex {
             // Linearised: residual (s + ω×s + δt − q)·n = 0 for the update (ω, δt).
             // JᵀJ is symmetric: its upper triangle is summed (each entry the
             // same products in the same order as the whole outer product's).
-            let mut upper = [0.0f64; 21];
+            let mut jtj = Matrix6::<f64>::zeros();
             let mut jtr = Vector6::<f64>::zeros();
             let (mut inliers, mut sum_sq) = (0usize, 0.0f64);
             for (s, q, n, d) in &pairs {
@@ -174,25 +166,16 @@ impl ModelIndex {
                 let r = (s - q).dot(n);
                 let c = s.cross(n);
                 let j = Vector6::new(c.x, c.y, c.z, n.x, n.y, n.z);
-                let mut k = 0;
                 for a in 0..6 {
                     for b in a..6 {
-                        upper[k] += j[a] * j[b];
-                        k += 1;
+                        jtj[(a, b)] += j[a] * j[b];
                     }
                 }
                 jtr += j * r;
                 inliers += 1;
                 sum_sq += r * r;
             }
-            let mut jtj = Matrix6::<f64>::zeros();
-            let mut k = 0;
-            for a in 0..6 {
-                for b in a..6 {
-                    (jtj[(a, b)], jtj[(b, a)]) = (upper[k], upper[k]);
-                    k += 1;
-                }
-            }
+            jtj.fill_lower_triangle_with_upper_triangle();
             // A view that leaves a direction unconstrained (one face of a
             // box: no normal along it) makes JᵀJ singular; a little damping
             // keeps the step at zero along that direction instead of ending

@@ -26,7 +26,7 @@
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
-use crate::index::{ModelIndex, Pose};
+use crate::index::{as_queries, ModelIndex, Pose};
 use crate::query::Pinhole;
 use crate::threads;
 use crate::Point3;
@@ -376,7 +376,7 @@ pub fn align_translations(
             let to_model = pose.inverse();
             let (mut shift, mut paired) = (Vector3::zeros(), 0usize);
             let moved: Vec<Vector3<f64>> = observed.iter().map(|p| to_model.apply(p)).collect();
-            let found = index.nearest_each_within(&as_f32(&moved), max_distance);
+            let found = index.nearest_each_within(&as_queries(&moved), max_distance);
             for (&m, found) in moved.iter().zip(found) {
                 if let Some((i, _)) = found {
                     let q = index.points()[i];
@@ -392,14 +392,6 @@ pub fn align_translations(
         }
         pose
     })
-}
-
-/// Model-frame points (metres) as the f32 queries of the model's index.
-fn as_f32(points: &[Vector3<f64>]) -> Vec<Point3> {
-    points
-        .iter()
-        .map(|m| [m.x as f32, m.y as f32, m.z as f32])
-        .collect()
 }
 
 /// Poses handled at once in parallel from this many on (the second search's
@@ -613,7 +605,7 @@ fn score_pose(
     let moved: Vec<Vector3<f64>> = observed.iter().map(|p| to_model.apply(p)).collect();
     // Beyond the inlier distance a pair counts as that distance: its
     // nearest model point need not be found.
-    for found in index.nearest_each_within(&as_f32(&moved), settings.inlier_distance) {
+    for found in index.nearest_each_within(&as_queries(&moved), settings.inlier_distance) {
         match found {
             Some((i, sq)) => {
                 inliers += 1;
