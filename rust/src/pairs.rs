@@ -176,10 +176,19 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
         references
             .par_iter()
             .map_init(
-                || vec![0u32; m * ROTATION_BINS],
-                |accumulator, &r| {
+                || {
+                    (
+                        vec![0u32; m * ROTATION_BINS],
+                        Vec::with_capacity(scene.len()),
+                    )
+                },
+                |(accumulator, runs), &r| {
                     accumulator.fill(0);
                     let to_x = rotation_to_x(&normals[r]);
+                    // Where each scene pair's model pairs lie in the table,
+                    // all read before any votes: the table's cache misses
+                    // overlap instead of waiting one after another.
+                    runs.clear();
                     for i in 0..scene.len() {
                         if i == r || (scene[i] - scene[r]).norm() > max_distance {
                             continue;
@@ -197,6 +206,9 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
                             (table.starts[key as usize], table.starts[key as usize + 1]);
                         let scene_turn =
                             turn_bin(angle_about_x(&to_x, &scene[r], &scene[i])) as usize;
+                        runs.push((first, end, scene_turn));
+                    }
+                    for &(first, end, scene_turn) in runs.iter() {
                         for &(model_ref, model_turn) in &table.entries[first as usize..end as usize]
                         {
                             // The turn taking the model pair onto the scene pair, in bins.
