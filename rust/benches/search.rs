@@ -11,7 +11,7 @@ use edgepose_core::rng::SplitMix64;
 use edgepose_core::scoring::align_translations;
 use edgepose_core::{
     on_support_plane, score_poses, segment, top_k, verify, DepthGrid, ModelIndex, Pinhole, Point3,
-    Pose, ScoreSettings, SegmentSettings, SupportSettings,
+    Pose, SceneDepth, ScoreSettings, SegmentSettings, SupportSettings,
 };
 
 fn unit_codes(views: usize, dim: usize, rng: &mut SplitMix64) -> Vec<f32> {
@@ -208,6 +208,11 @@ fn bench_search(c: &mut Criterion) {
             let grid = DepthGrid::new(&seen, spacing, 2.0);
             score_poses(&index, &keypoints, &grid, &candidates, &settings)
         })
+    });
+    // The scene test's window of the frame (estimate given the depth image):
+    // the whole 640 × 480 frame, converted to metres once per query.
+    group.bench_function("scene_window_640x480", |b| {
+        b.iter(|| SceneDepth::from_frame(&frame, [480, 640], [0, 480, 0, 640], 1.0, camera, 2))
     });
     group.bench_function("align_16_candidates_32_keypoints_3_iterations", |b| {
         b.iter(|| align_translations(&index, &keypoints, &candidates, 3, 0.012))
