@@ -15,12 +15,15 @@ from edgepose.views import rotation_about
 
 
 def _mug() -> trimesh.Trimesh:
-    """An 8 cm cylinder, 10 cm tall, with a box handle set off-centre in height
+    """An 8 cm cylinder, 10 cm tall, with a knob on its lid (so a view of
+    its side tells up from down) and a box handle set off-centre in height
     (so the mug has no symmetry at all), metres."""
     body = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=64)
+    knob = trimesh.creation.cylinder(radius=0.015, height=0.012, sections=32)
+    knob.apply_translation((0.0, 0.0, 0.056))
     handle = trimesh.creation.box(extents=(0.03, 0.012, 0.06))
     handle.apply_translation((0.052, 0.0, 0.015))
-    return trimesh.util.concatenate([body, handle])
+    return trimesh.util.concatenate([body, knob, handle])
 
 
 @pytest.fixture(scope="module")

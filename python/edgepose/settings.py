@@ -300,9 +300,9 @@ class EstimateSettings:
     The evidence for each default is in ``docs/tuning.md``."""
 
     # --- prepare the query (stage 1)
-    max_cloud_points: int = 2048
+    max_cloud_points: int = 1536
     """Larger clouds are subsampled (seeded) first: bounded time and memory;
-    2,048 points cover an object densely for a 512-point map."""
+    1,536 points cover an object densely for a 512-point map."""
     segment: bool = True
     """Drop statistical outliers and components split off by depth jumps
     (background a spilled mask picked up, flying pixels) before anything else."""
