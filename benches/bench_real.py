@@ -294,7 +294,8 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
             "`Tracker` per object (`update_depth`), the same with `track_many`, and `estimate_many` on the same "
             "frames.",
             "",
-            f"- Tracker: **{_pct(100 * np.mean([f.correct for f in frames]))}** of {len(frames)} object-frames right; "
+            f"- Tracker: **{_pct(100 * np.mean([f.correct for f in frames]))}** of {len(frames)} object-frames right "
+            f"(view-fair: {_pct(100 * np.mean([f.view_fair for f in frames]))}); "
             + ", ".join(f"{k} {v}" for k, v in modes.items())
             + f"; a tracked object-frame {np.median(tracked_ms) if tracked_ms else float('nan'):.2f} ms at the median.",
             f"- Per image (all its objects), medians: `track_many` (the objects' trackers in parallel threads, "
@@ -307,11 +308,16 @@ def _report(args, dataset, results, ar, peer, synthetic, clips, load_before, sec
             f"{len(clips.track_many_same)} object-frames; "
             f"`estimate_many` right on {_pct(100 * np.mean(clips.many_correct))}.",
         ]
-        lines += ["", "| object | frames | right | re-initialised |", "| --- | ---: | ---: | ---: |"]
+        lines += [
+            "",
+            "| object | frames | right | view-fair | re-initialised |",
+            "| --- | ---: | ---: | ---: | ---: |",
+        ]
         for obj_id in sorted({f.obj_id for f in frames}):
             mine = [f for f in frames if f.obj_id == obj_id]
             lines.append(
                 f"| {obj_id} {NAMES.get(obj_id, '')} | {len(mine)} | {_pct(100 * np.mean([f.correct for f in mine]))} "
+                f"| {_pct(100 * np.mean([f.view_fair for f in mine]))} "
                 f"| {sum(f.mode == 'reinitialised' for f in mine)} |"
             )
     return "\n".join(lines) + "\n"

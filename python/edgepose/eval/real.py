@@ -12,7 +12,8 @@ adds the views that cannot tell a pose: a target whose view hides what
 breaks its object's near symmetry (a mug's handle, read from the ground
 truth by :mod:`edgepose.eval.view_ambiguity`) counts when its pose is
 flagged (confidence below the strict threshold, the truth among its
-alternatives).
+alternatives; for a tracked frame, among the turns its ``unseen_turn``
+leaves open).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from edgepose.frame import estimate_many, track_many
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.track import Tracker
-from edgepose.unseen_turn import near_axis
+from edgepose.unseen_turn import NearAxis, near_axis, turned_about
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,6 +215,10 @@ class TrackedFrame:
     seconds: float
     correct: bool
     confidence: float
+    view_fair: bool = False
+    """Right, or the view hides the object's feature (from the ground truth)
+    and the pose is flagged: confidence below its strict threshold and the
+    truth among the turns its ``unseen_turn`` leaves open."""
 
 
 @dataclass
@@ -277,8 +282,12 @@ def track_clips(
                 image_seconds += seconds
                 alone.append(pose)
                 mode, confidence = (pose.mode, pose.confidence) if pose is not None else ("lost", 0.0)
-                right = _right(objects[gt.obj_id], pose, gt)
-                run.frames.append(TrackedFrame(scene_id, im_id, gt.obj_id, mode, seconds, right, confidence))
+                obj = objects[gt.obj_id]
+                right = _right(obj, pose, gt)
+                fair = right or (
+                    _turn_flagged(obj, pose, gt) and obj.hidden_by(gt.matrix, depth, image.K, image.mask(gt.gt_id))
+                )
+                run.frames.append(TrackedFrame(scene_id, im_id, gt.obj_id, mode, seconds, right, confidence, fair))
             run.tracker_image_seconds.append(image_seconds)
             tracked = track_many(
                 depth, image.K, [(m, tracker_of(together, g)) for g, m in zip(gts, masks)], depth_scale=1.0
@@ -302,6 +311,21 @@ def _right(obj: RealObject, pose: Pose | None, gt: BopGt) -> bool:
     if pose is None:
         return False
     return bool(pose_errors(obj.points, pose.matrix, gt.matrix, obj.diameter, obj.symmetric).correct_add_or_s)
+
+
+def _turn_flagged(obj: RealObject, pose: Pose | None, gt: BopGt) -> bool:
+    """Whether ``pose`` says it cannot tell the turn: confidence below its
+    strict threshold and the truth among the pose turned by each angle of
+    its ``unseen_turn`` (the alternatives a tracked pose carries)."""
+    if pose is None or pose.unseen_turn is None or not pose.confidence < pose.strict_threshold:
+        return False
+    turn = pose.unseen_turn
+    rotations, translations = turned_about(
+        pose.R, pose.t, NearAxis(turn.axis, turn.point), np.zeros(3), turn.angles_deg
+    )
+    T = np.tile(np.eye(4), (len(rotations), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = rotations, translations
+    return any(pose_errors(obj.points, Ti, gt.matrix, obj.diameter, obj.symmetric).correct_add_or_s for Ti in T)
 
 
 def _same_pose(a: Pose | None, b: Pose | None) -> bool:
