@@ -32,6 +32,7 @@ from edgepose.eval.view_ambiguity import feature_points, view_hides_feature
 from edgepose.frame import estimate_many, track_many
 from edgepose.pose import Pose, estimate
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
+from edgepose.symmetry import transform_from
 from edgepose.track import Tracker
 from edgepose.unseen_turn import NearAxis, near_axis, turned_about
 
@@ -323,9 +324,10 @@ def _turn_flagged(obj: RealObject, pose: Pose | None, gt: BopGt) -> bool:
     rotations, translations = turned_about(
         pose.R, pose.t, NearAxis(turn.axis, turn.point), np.zeros(3), turn.angles_deg
     )
-    T = np.tile(np.eye(4), (len(rotations), 1, 1))
-    T[:, :3, :3], T[:, :3, 3] = rotations, translations
-    return any(pose_errors(obj.points, Ti, gt.matrix, obj.diameter, obj.symmetric).correct_add_or_s for Ti in T)
+    return any(
+        pose_errors(obj.points, transform_from(R, t), gt.matrix, obj.diameter, obj.symmetric).correct_add_or_s
+        for R, t in zip(rotations, translations)
+    )
 
 
 def _same_pose(a: Pose | None, b: Pose | None) -> bool:
