@@ -14,11 +14,7 @@ pub fn top_k(codes: &[f32], dim: usize, query: &[f32], k: usize) -> Vec<(usize, 
         dim > 0 && codes.len().is_multiple_of(dim) && query.len() == dim,
         "codes must be V × dim"
     );
-    let mut scored: Vec<(usize, f32)> = codes
-        .chunks_exact(dim)
-        .enumerate()
-        .map(|(v, code)| (v, code.iter().zip(query).map(|(a, b)| a * b).sum()))
-        .collect();
+    let mut scored = similarities(codes, dim, query);
     let k = k.min(scored.len());
     if k == 0 {
         return Vec::new();
@@ -28,6 +24,39 @@ pub fn top_k(codes: &[f32], dim: usize, query: &[f32], k: usize) -> Vec<(usize, 
     scored.select_nth_unstable_by(k - 1, order);
     scored.truncate(k);
     scored.sort_by(order);
+    scored
+}
+
+/// Codes whose similarities [`similarities`] sums side by side.
+const CODES_AT_ONCE: usize = 8;
+
+/// `(view index, similarity)` of each of the row-major `codes` (V × dim)
+/// to `query`. Each code's products are summed in order, as
+/// `Iterator::sum` would (from −0.0), so every similarity is the same bit
+/// for bit; [`CODES_AT_ONCE`] codes are summed side by side, so that the
+/// sums do not wait on one another's additions.
+fn similarities(codes: &[f32], dim: usize, query: &[f32]) -> Vec<(usize, f32)> {
+    let mut scored = Vec::with_capacity(codes.len() / dim);
+    let mut blocks = codes.chunks_exact(dim * CODES_AT_ONCE);
+    for block in blocks.by_ref() {
+        let rows: [&[f32]; CODES_AT_ONCE] = std::array::from_fn(|j| &block[j * dim..][..dim]);
+        let mut sums = [-0.0f32; CODES_AT_ONCE];
+        for (d, &q) in query.iter().enumerate() {
+            for (sum, row) in sums.iter_mut().zip(&rows) {
+                *sum += row[d] * q;
+            }
+        }
+        let first = scored.len();
+        scored.extend(sums.iter().enumerate().map(|(j, &sum)| (first + j, sum)));
+    }
+    let first = scored.len();
+    scored.extend(
+        blocks
+            .remainder()
+            .chunks_exact(dim)
+            .enumerate()
+            .map(|(j, code)| (first + j, code.iter().zip(query).map(|(a, b)| a * b).sum())),
+    );
     scored
 }
 
@@ -104,6 +133,39 @@ pub fn point_distances(
 mod tests {
     use super::*;
     use nalgebra::{Matrix3, Rotation3, Vector3};
+
+    #[test]
+    fn similarities_are_each_codes_sum_in_order() {
+        let mut state = 7u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+        };
+        let dim = 64;
+        for views in [0, 1, 7, 8, 9, 2100] {
+            let mut codes: Vec<f32> = (0..views * dim).map(|_| uniform()).collect();
+            let mut query: Vec<f32> = (0..dim).map(|_| uniform()).collect();
+            if views > 3 {
+                // A code of zeros against a query of negative values: every
+                // product −0.0, so the sum's sign is its start's.
+                codes[3 * dim..4 * dim].fill(0.0);
+                query.iter_mut().for_each(|q| *q = -q.abs() - 0.1);
+            }
+            let one_at_a_time: Vec<u32> = codes
+                .chunks_exact(dim)
+                .map(|code| {
+                    let sum: f32 = code.iter().zip(&query).map(|(a, b)| a * b).sum();
+                    sum.to_bits()
+                })
+                .collect();
+            let found = similarities(&codes, dim, &query);
+            assert!(found.iter().enumerate().all(|(v, &(i, _))| i == v));
+            let bits: Vec<u32> = found.iter().map(|&(_, s)| s.to_bits()).collect();
+            assert_eq!(bits, one_at_a_time, "{views} views");
+        }
+    }
 
     #[test]
     fn point_distances_are_per_point_and_per_pose() {
