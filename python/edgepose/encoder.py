@@ -89,8 +89,16 @@ class Encoder:
         options.intra_op_num_threads = 1
         options.inter_op_num_threads = 1
         providers = ["CPUExecutionProvider"]
+        # One map a call (every estimate's): the batch dimension fixed at 1
+        # lets onnxruntime fold the graph's shape arithmetic away; the same
+        # kernels, the same codes bit for bit.
+        one_map = ort.SessionOptions()
+        one_map.intra_op_num_threads = 1
+        one_map.inter_op_num_threads = 1
+        one_map.add_free_dimension_override_by_name("batch", 1)
         try:
             self._encoder = ort.InferenceSession(blobs["encoder.onnx"], options, providers=providers)
+            self._encoder_one_map = ort.InferenceSession(blobs["encoder.onnx"], one_map, providers=providers)
             self._irr = ort.InferenceSession(blobs["irr.onnx"], options, providers=providers)
         except Exception as e:  # onnxruntime raises its own untyped failures
             raise ModelFilesError(f"onnxruntime cannot load the networks in {models_dir}: {e}") from None
@@ -122,7 +130,8 @@ class Encoder:
 
         def run(i: int) -> list[np.ndarray]:
             features = _core.map_features(chunks[i], self.centres, self.neighbours, self.harmonics)
-            return self._encoder.run(None, dict(zip(ENCODER_INPUTS, features)))
+            session = self._encoder_one_map if len(chunks[i]) == 1 else self._encoder
+            return session.run(None, dict(zip(ENCODER_INPUTS, features)))
 
         codes, spectra = zip(*each(run, len(chunks), self.threads))
         return np.concatenate(codes), np.concatenate(spectra)
