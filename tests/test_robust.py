@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 from edgepose import _core
-from edgepose.cloud import FLYING_PIXEL_JUMP, clean_cloud, depth_discontinuities, dilate, erode
+from edgepose.cloud import FLYING_PIXEL_JUMP, clean_cloud, depth_discontinuities, dilate, erode, median_depth
 from edgepose.eval import pose_errors, render_scene, render_view
 from edgepose.stages import near_the_cloud, on_support_plane, pair_poses, prepare_query
 
@@ -45,6 +45,14 @@ def test_flying_pixels_at_depth_edges_are_dropped():
     assert len(kept) == spilled.sum() and len(cloud) == spilled.sum() - edges.sum()
     # No kept point lies between the two surfaces.
     assert not ((cloud[:, 2] > 0.605) & (cloud[:, 2] < 0.645)).any()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_median_depth_is_numpys_median_of_z(dtype):
+    rng = np.random.default_rng(5)
+    for n in [1, 2, 3, 4, 17, 1535, 1536]:
+        points = rng.normal(0.7, 0.1, (n, 3)).astype(dtype)
+        assert median_depth(points) == float(np.median(points[:, 2])), n
 
 
 def test_erosion_shrinks_the_mask_before_back_projection():

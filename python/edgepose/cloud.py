@@ -159,6 +159,19 @@ def _rows_of_valid(masks: list[np.ndarray], counts: list[int], ranks: np.ndarray
     return rows
 
 
+def median_depth(points: np.ndarray) -> float:
+    """Median z of (N ≥ 1, 3) finite camera-frame points, metres: the value
+    ``np.median`` gives (the mean of the two middle values for an even
+    count) through one partition, a fraction of ``np.median``'s overhead
+    on the few thousand points of an estimate."""
+    z = points[:, 2]
+    middle = len(z) // 2
+    if len(z) % 2:
+        return float(np.partition(z, middle)[middle])
+    low, high = np.partition(z, [middle - 1, middle])[middle - 1 : middle + 1]
+    return float((low + high) / 2)
+
+
 def is_number(value: object) -> bool:
     """Whether ``value`` is one real number (not a bool, an array or ``None``)."""
     return isinstance(value, (numbers.Real, np.number)) and not isinstance(value, (bool, np.bool_))

@@ -41,6 +41,7 @@ from edgepose.cloud import (
     clean_cloud,
     clean_depth_cloud,
     cloud_from_depth,
+    median_depth,
 )
 from edgepose.codebook import Codebook
 from edgepose.confidence import FitEvidence, SearchEvidence, evidence_of
@@ -230,7 +231,7 @@ class Tracker:
         seen = off_support_plane(cleaned(track.grid_points), frame, d, settings)
         points = subsample(seen, track.points, settings.subsample_seed)
         R, t = self._predicted()
-        tolerance = free_space_tolerance(float(np.median(seen[:, 2])), d, settings)
+        tolerance = free_space_tolerance(median_depth(seen), d, settings)
         depth, K, depth_scale = frame if frame is not None else (None, None, 1.0)
         fit = codebook.index.track_frame(
             points,

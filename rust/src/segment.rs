@@ -369,31 +369,39 @@ fn rejoin_steep_faces(
             .then(|| DepthPlane::fit(same.map(offset)))
             .flatten()
     };
-    let mut near = Vec::new();
     // The sensor's noise: the median rms of the kept points' planes (a
-    // sample of at most 128 of them).
-    let kept_at: Vec<usize> = (0..front.len()).filter(|&a| kept[a]).collect();
-    let noise: Vec<f64> = kept_at
-        .iter()
-        .step_by(kept_at.len().div_ceil(128).max(1))
-        .filter_map(|&a| plane_of(a, &mut near).map(|(_, rms)| rms))
-        .collect();
-    let tolerance =
-        (settings.ramp_noise * median_of(&noise)).max(settings.ramp_min_noise_spacings * spacing);
+    // sample of at most 128 of them). Worked out when a dropped point first
+    // has a plane: scattered flying pixels (most clouds' only dropped
+    // points) have none.
+    let tolerance = std::cell::OnceCell::new();
+    let tolerance = || {
+        *tolerance.get_or_init(|| {
+            let mut near = Vec::new();
+            let kept_at: Vec<usize> = (0..front.len()).filter(|&a| kept[a]).collect();
+            let noise: Vec<f64> = kept_at
+                .iter()
+                .step_by(kept_at.len().div_ceil(128).max(1))
+                .filter_map(|&a| plane_of(a, &mut near).map(|(_, rms)| rms))
+                .collect();
+            (settings.ramp_noise * median_of(&noise))
+                .max(settings.ramp_min_noise_spacings * spacing)
+        })
+    };
     // Each dropped point on a plane (a ramp) is linked to the image
     // neighbours on its plane; it rejoins when a chain of links leads to a
     // point of the object (the object's edge the face meets).
+    let mut near = Vec::new();
     let mut rejoined = vec![false; front.len()];
     let mut linked_from: Vec<Vec<u32>> = vec![Vec::new(); front.len()];
     let mut queue = Vec::new();
-    let reach_link = settings.ramp_link * tolerance;
     for a in (0..front.len()).filter(|&a| !kept[a] && fragment(front[a])) {
         let Some((plane, rms)) = plane_of(a, &mut near) else {
             continue;
         };
-        if rms > tolerance {
+        if rms > tolerance() {
             continue;
         }
+        let reach_link = settings.ramp_link * tolerance();
         for &b in &near {
             let on_plane = plane.depth_at(image[b][0] - image[a][0], image[b][1] - image[a][1]);
             if (depth(b) as f64 - on_plane).abs() <= reach_link {

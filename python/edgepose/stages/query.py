@@ -14,7 +14,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 
 from edgepose import _core
-from edgepose.cloud import MIN_POINTS, clean_cloud
+from edgepose.cloud import MIN_POINTS, clean_cloud, median_depth
 from edgepose.codebook import Codebook
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 
@@ -68,7 +68,7 @@ class Query:
     @cached_property
     def median_depth(self) -> float:
         """Median z of ``points``, metres: the depth the sensor's noise is read at."""
-        return float(np.median(self.points[:, 2]))
+        return median_depth(self.points)
 
     def sample(self, count: int, seed: int) -> np.ndarray:
         """:func:`subsample` of ``points`` (``count``, ``seed``), drawn once
