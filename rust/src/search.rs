@@ -136,13 +136,8 @@ mod tests {
 
     #[test]
     fn similarities_are_each_codes_sum_in_order() {
-        let mut state = 7u64;
-        let mut uniform = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
-        };
+        let mut rng = crate::rng::SplitMix64::new(7);
+        let mut uniform = || rng.next_f64() as f32 - 0.5;
         let dim = 64;
         for views in [0, 1, 7, 8, 9, 2100] {
             let mut codes: Vec<f32> = (0..views * dim).map(|_| uniform()).collect();
