@@ -89,7 +89,7 @@ class Encoder:
         options.intra_op_num_threads = 1
         options.inter_op_num_threads = 1
         providers = ["CPUExecutionProvider"]
-        # One map a call (every estimate's): the batch dimension fixed at 1
+        # One map a call (an estimate's, a codebook build's): the batch fixed at 1
         # lets onnxruntime fold the graph's shape arithmetic away; the same
         # kernels, the same codes bit for bit.
         one_map = ort.SessionOptions()

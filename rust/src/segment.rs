@@ -371,8 +371,8 @@ fn rejoin_steep_faces(
     };
     // The sensor's noise: the median rms of the kept points' planes (a
     // sample of at most 128 of them). Worked out when a dropped point first
-    // has a plane: scattered flying pixels (most clouds' only dropped
-    // points) have none.
+    // has a plane: a cloud whose only dropped points are scattered flying
+    // pixels needs none.
     let tolerance = std::cell::OnceCell::new();
     let tolerance = || {
         *tolerance.get_or_init(|| {
