@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import pickle
+import shutil
 import statistics
 import subprocess
 import sys
@@ -61,8 +62,7 @@ def built(rev: str) -> Path:
         [str(maturin), "build", "--release", "--quiet", "-o", str(home / "dist")], cwd=source, env=env, check=True
     )
     wheel = max((home / "dist").glob("*.whl"), key=lambda p: p.stat().st_mtime)
-    if package.exists():
-        subprocess.run(["rm", "-rf", str(package)], check=True)
+    shutil.rmtree(package, ignore_errors=True)
     (source / "python").rename(package)
     with zipfile.ZipFile(wheel) as z:
         (package / "edgepose" / "_core.abi3.so").write_bytes(z.read("edgepose/_core.abi3.so"))
@@ -71,18 +71,17 @@ def built(rev: str) -> Path:
 
 def rendered(level: str, views: int) -> Path:
     """The benchmark's views at ``level`` (clouds, depth frames), pickled once."""
-    from bench_pose import YCB
+    from bench_pose import load_sources
     from edgepose.eval.benchmark import load_object
-    from edgepose.model import read_mesh
 
     path = CACHE / f"views_{level}_{views}.pkl"
     if not path.is_file():
-        names = sorted(p.stem for p in YCB.glob("*.ply"))
+        ycb = argparse.Namespace(tune=False, meshes=None, objects=None, seed=0)
         objects = []
-        for k, name in enumerate(names):
-            mesh = read_mesh(YCB / f"{name}.ply", scale=None)
-            obj = load_object(mesh, [k * 1000 + i for i in range(views)], name=name, stress=level)
-            objects.append((name, mesh, obj.clouds, obj.frames))
+        for source in load_sources(ycb, argparse.ArgumentParser()):
+            seeds = [source.seed_base + i for i in range(views)]
+            obj = load_object(source.mesh, seeds, name=source.name, stress=level)
+            objects.append((source.name, source.mesh, obj.clouds, obj.frames))
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(pickle.dumps(objects))
     return path

@@ -85,17 +85,15 @@ class Encoder:
         if threads < 1:
             raise ValueError(f"threads must be at least 1, got {threads}")
         self.threads = threads
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = 1
-        options.inter_op_num_threads = 1
-        providers = ["CPUExecutionProvider"]
+        options, one_map = ort.SessionOptions(), ort.SessionOptions()
+        for each_call in (options, one_map):
+            each_call.intra_op_num_threads = 1
+            each_call.inter_op_num_threads = 1
         # One map a call (an estimate's, a codebook build's): the batch fixed at 1
         # lets onnxruntime fold the graph's shape arithmetic away; the same
         # kernels, the same codes bit for bit.
-        one_map = ort.SessionOptions()
-        one_map.intra_op_num_threads = 1
-        one_map.inter_op_num_threads = 1
         one_map.add_free_dimension_override_by_name("batch", 1)
+        providers = ["CPUExecutionProvider"]
         try:
             self._encoder = ort.InferenceSession(blobs["encoder.onnx"], options, providers=providers)
             self._encoder_one_map = ort.InferenceSession(blobs["encoder.onnx"], one_map, providers=providers)
