@@ -5,12 +5,11 @@ trackers, each given by its mask and its :class:`edgepose.Tracker`.
 
 It does what :func:`edgepose.estimate` does per object given the frame
 (``estimate(cloud, codebook, depth=depth, K=K)``: poses are checked against
-the scene around each object too), but shares the
-frame's work: the depth image is checked and converted once, the objects'
-maps are encoded as one batch, and the objects are searched and refined
-in parallel threads (the Rust core and onnxruntime release the GIL). The
-poses equal :func:`edgepose.estimate`'s on each object's masked cloud and the frame up to
-the floating-point order of a batched encoding.
+the scene around each object too), but shares the frame's work: the depth
+image is checked once, and the objects are estimated in parallel threads
+(the Rust core and onnxruntime release the GIL), each thread taking the
+next object when done with its last. The poses equal
+:func:`edgepose.estimate`'s on each object's masked cloud and the frame.
 
 Units are metres; camera frames follow OpenCV; poses are ``T_cam_obj``.
 """
@@ -30,7 +29,7 @@ from edgepose.errors import EdgePoseError, InvalidArgumentError
 from edgepose.pose import Pose, check_estimate_inputs, check_types, pose_from_query
 from edgepose.search import Laps
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
-from edgepose.stages import Query, query_of_cleaned
+from edgepose.stages import query_of_cleaned
 from edgepose.track import Tracker
 from edgepose.workers import each
 
@@ -54,9 +53,9 @@ class FramePoses:
     per-image time the BOP benchmark records (the networks' first load,
     once per process, is not counted)."""
     timings: dict = field(default_factory=dict)
-    """Seconds per shared step: ``queries`` (clouds and stage 1, all
-    objects), ``encode`` (the batch of maps), ``search`` (stages 2–5
-    and the confidence, all objects), ``total``."""
+    """Seconds per stage summed over the objects (the stages of
+    :attr:`edgepose.Pose.timings`, their cloud's cut from the frame in
+    ``prepare_query``), and ``total``: :attr:`seconds`."""
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -80,57 +79,38 @@ def estimate_many(
     detector's mask that spills is fine, as for :func:`edgepose.estimate`).
 
     ``workers`` threads share the objects (default: one per core, at most one
-    per object); the default encoder runs the batch on every core. A
-    bad frame (depth, ``K``, a mask's shape, a codebook of another encoder)
-    raises; an object whose mask gives no usable cloud gets
+    per object). A bad frame (depth, ``K``, a mask's shape, a codebook of
+    another encoder) raises; an object whose mask gives no usable cloud gets
     ``None`` and its error in :attr:`FramePoses.errors`, and the others
     their poses."""
-    # The batched encoding runs alone, so it may use every core (one
-    # encoder for every call: loading one is not a frame's work).
-    encoder = encoder or default_encoder(threads=usable_cores())
+    encoder = encoder or default_encoder()
     t0 = time.perf_counter()
     workers = max(1, min(workers or usable_cores(), len(objects)))
     depth, K = checked_depth(depth, K, depth_scale)
     masks, codebooks = _checked_objects(objects, depth.shape, encoder, settings)
-    timings: dict[str, float] = {}
+    search_settings = settings.with_(**ONE_CORE_EACH) if workers > 1 else settings
+    frame = (depth, K, depth_scale)
 
-    def prepared(i: int) -> tuple[Query | None, Laps, EdgePoseError | None]:
+    def estimated(i: int) -> tuple[Pose | None, EdgePoseError | None]:
         laps = Laps()
         try:
-            frame = (depth, K, depth_scale)
-            diameter = codebooks[i].model.diameter
-            cleaned = clean_depth_cloud(*frame, masks[i], diameter, settings.max_cloud_points)
+            cleaned = clean_depth_cloud(*frame, masks[i], codebooks[i].model.diameter, settings.max_cloud_points)
             query = query_of_cleaned(cleaned, codebooks[i], settings, frame)
         except EdgePoseError as e:
-            return None, laps, e
+            return None, e
         laps("prepare_query")
-        return query, laps, None
+        return pose_from_query(query, codebooks[i], encoder, refine, search_settings, laps), None
 
-    search_settings = settings.with_(**ONE_CORE_EACH) if workers > 1 else settings
-    started = time.perf_counter()
-    queries, laps, errors = zip(*each(prepared, len(objects), workers)) if objects else ((), (), ())
-    timings["queries"] = time.perf_counter() - started
-    started = time.perf_counter()
-    usable = [i for i, q in enumerate(queries) if q is not None]
-    codes, spectra = encoder.encode(np.stack([queries[i].map for i in usable])) if usable else ((), ())
-    encoded = dict(zip(usable, zip(codes, spectra)))
-    timings["encode"] = time.perf_counter() - started
-    started = time.perf_counter()
-
-    def searched(i: int) -> Pose | None:
-        query = queries[i]
-        if query is None:
-            return None
-        now = time.perf_counter()  # its search starts now: the wait is not its time
-        laps[i].start += now - laps[i].clock
-        laps[i].clock = now
-        return pose_from_query(query, codebooks[i], encoder, refine, search_settings, laps[i], encoded[i])
-
-    poses = tuple(each(searched, len(objects), workers))
-    timings["search"] = time.perf_counter() - started
+    results = each(estimated, len(objects), workers)
+    poses, errors = zip(*results) if results else ((), ())
     seconds = time.perf_counter() - t0
+    timings: dict[str, float] = {}
+    for pose in (p for p in poses if p is not None):
+        for stage, spent in pose.timings.items():
+            if stage != "total":
+                timings[stage] = timings.get(stage, 0.0) + spent
     timings["total"] = seconds
-    return FramePoses(poses, tuple(errors), seconds, timings)
+    return FramePoses(tuple(poses), tuple(errors), seconds, timings)
 
 
 def track_many(

@@ -240,15 +240,13 @@ def pose_from_query(
     refine: bool,
     settings: EstimateSettings,
     laps: Laps,
-    encoded: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Pose:
     """Stages 2–5, the second search, the turned-pose check, the confidence
-    and the turn the view leaves open, for a prepared ``query`` (``encoded``:
-    its map's code and spectrum, when already computed), as :func:`estimate`."""
+    and the turn the view leaves open, for a prepared ``query``, as :func:`estimate`."""
     # One retrieval serves both searches: the second one's extra views (if
     # retry_k asks for any) are the next ones down the same ranking.
     retry_k = min(settings.second_search.retry_k, len(codebook)) if refine else 0
-    retrieval = retrieve(query, codebook, encoder, max(settings.retrieve.k, retry_k), encoded)
+    retrieval = retrieve(query, codebook, encoder, max(settings.retrieve.k, retry_k))
     laps("retrieve")
     judge = encoder.judge(with_scene=query.scene is not None)
     search = Search(query, codebook, encoder, settings, laps, retrieval, judge)

@@ -38,16 +38,11 @@ def retrieve(
     codebook: Codebook,
     encoder: Encoder,
     k: int,
-    encoded: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Retrieval:
     """Stage 2: the map's code and its ``k`` most similar codebook views, with
-    the in-plane angle to each. ``encoded``: the map's ``(code, spectrum)``
-    when already encoded (:func:`edgepose.estimate_many` encodes a frame's
-    maps at once)."""
-    if encoded is None:
-        codes, spectra = encoder.encode(query.map[None])
-        encoded = codes[0], spectra[0]
-    code, spectrum = encoded
+    the in-plane angle to each."""
+    codes, spectra = encoder.encode(query.map[None])
+    code, spectrum = codes[0], spectra[0]
     candidates, similarity = _core.top_k(codebook.codes, code, k)
     candidates = candidates.astype(np.intp)
     angles = encoder.in_plane_angles(spectrum, codebook.spectra[candidates]).astype(np.float64)
