@@ -22,6 +22,15 @@ def ycb_dir() -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def train_shapes_dir() -> Path:
+    """The shared training meshes the exporter reads (blobs and CAD parts)."""
+    path = SHARED_DATA / "train_shapes"
+    if not (path / "cad").is_dir():
+        pytest.skip(f"shared training meshes not found at {path}")
+    return path
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)

@@ -101,6 +101,7 @@ def test_a_reexport_whose_codes_differ_gets_its_own_fingerprint(tmp_path, monkey
     assert Encoder(tmp_path).fingerprint == manifest["files"]["encoder.onnx"] != Encoder().fingerprint
 
 
+@pytest.mark.usefixtures("train_shapes_dir")
 def test_training_pairs_carry_the_true_in_plane_angle(monkeypatch):
     # The label is what is checked here: without the occlusion and spill
     # augmentations, which move the observed map away from the codebook's.
@@ -128,6 +129,7 @@ def test_occlusion_augmentation_hides_the_asked_fraction():
     assert len(spilled) == 400 and (spilled[:, 2] > points[:, 2].max()).all()
 
 
+@pytest.mark.usefixtures("train_shapes_dir")
 def test_tiny_training_exports_onnx_that_matches_torch(tmp_path):
     out = tmp_path / "models"
     assert train.main(["--tiny", "--out", str(out), "--cache", str(tmp_path / "cache")]) == 0
