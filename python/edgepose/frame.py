@@ -54,8 +54,8 @@ class FramePoses:
     once per process, is not counted)."""
     timings: dict = field(default_factory=dict)
     """Seconds per stage summed over the objects (the stages of
-    :attr:`edgepose.Pose.timings`, their cloud's cut from the frame in
-    ``prepare_query``), and ``total``: :attr:`seconds`."""
+    :attr:`edgepose.Pose.timings`; ``prepare_query`` includes cutting each
+    cloud from the frame), and ``total``: :attr:`seconds`."""
 
     def __len__(self) -> int:
         return len(self.poses)
