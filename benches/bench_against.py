@@ -1,8 +1,8 @@
 """The median estimate time of this checkout against an earlier commit's, on
-the pose benchmark's views, in alternating rounds on the same machine: how
-the speed issue's "half of the day's median" is measured.
+the pose benchmark's views, interleaved view by view on the same machine:
+how the speed issue's "half of the day's median" is measured.
 
-    .venv/bin/python benches/bench_against.py REV [--rounds 10] [--repeats 2]
+    .venv/bin/python benches/bench_against.py REV [--rounds 4] [--repeats 2] [--turn 10]
                                               [--level clean] [--frame] [--views 20]
 
 ``REV`` (a commit, tag or branch) is built once into
@@ -10,14 +10,19 @@ the speed issue's "half of the day's median" is measured.
 compiled with maturin: a few minutes; its target directory is kept there
 for the next run). Views: ``bench_pose.py``'s, rendered once (the five YCB
 meshes, ``--views`` per mesh at ``--level``, the same seeds). Each round
-runs ``REV``, then this checkout, each in a fresh process that builds (or
-reads back) its codebooks, estimates each view once to warm up and then
-``--repeats`` times (``REV``'s codebooks are kept beside its build, this
-checkout's for the run only), from the cloud alone (``--frame``: given the depth
-frame too). Printed: each round's two medians and their ratio, then the
-median of each side over rounds, the ratio of those medians and the
-median of the rounds' ratios. The machine's pace drifts by tens of per
-cent between minutes: compare the sides within a round, not runs.
+starts one process per side (``REV``'s tree, this checkout's), which builds
+(or reads back) its codebooks and estimates each view once to warm up
+(``REV``'s codebooks are kept beside its build, this checkout's for the run
+only), from the cloud alone (``--frame``: given the depth frame too). Then
+the two take turns of ``--turn`` views, each estimating each view
+``--repeats`` times in a row while the other waits (the side that goes
+first alternates): the machine's pace drifts by tens of per cent between
+minutes, and a turn lasts a fraction of a second. A turn of one view puts
+each side's first estimate after the other's, its caches cold. Printed: each
+round's two medians and their ratio, then the
+median of each side over all rounds, the ratio of those medians, the median
+of the per-view ratios (each view's median time here over ``REV``'s) and
+the range of the rounds' ratios.
 """
 
 from __future__ import annotations
@@ -33,8 +38,6 @@ import tempfile
 import time
 import zipfile
 from pathlib import Path
-
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 CACHE = REPO / "benches" / ".cache" / "against"
@@ -89,11 +92,14 @@ def rendered(level: str, views: int) -> Path:
 
 def child(views: Path, codebooks: Path, repeats: int, frame: bool) -> None:
     """Runs in the side's own process (only ``edgepose``'s public API, which
-    ``REV`` has too): prints the median estimate in ms."""
+    ``REV`` has too): warms up, prints ``ready``, then for each view index
+    read from stdin (several to a line: a turn) estimates that view
+    ``repeats`` times and prints the turn's times in seconds; stops at end
+    of input."""
     import edgepose
 
     codebooks.mkdir(parents=True, exist_ok=True)
-    times = []
+    work = []
     for name, mesh, clouds, frames in pickle.loads(views.read_bytes()):
         path = codebooks / f"{name}.npz"
         if not path.is_file():
@@ -101,24 +107,57 @@ def child(views: Path, codebooks: Path, repeats: int, frame: bool) -> None:
         codebook = edgepose.Codebook.load(path)
         for cloud, (depth, K) in zip(clouds, frames):
             scene = {"depth": depth, "K": K, "depth_scale": 1.0} if frame else {}
-            edgepose.estimate(cloud, codebook, **scene)
+            work.append((cloud, codebook, scene))
+    for cloud, codebook, scene in work:
+        edgepose.estimate(cloud, codebook, **scene)
+    print(f"ready {len(work)}", flush=True)
+    for line in sys.stdin:
+        times = []
+        for view in map(int, line.split()):
+            cloud, codebook, scene = work[view]
             for _ in range(repeats):
                 start = time.perf_counter()
                 edgepose.estimate(cloud, codebook, **scene)
                 times.append(time.perf_counter() - start)
-    print(f"median_ms {1e3 * float(np.median(times)):.4f}")
+        print(" ".join(f"{t:.9f}" for t in times), flush=True)
 
 
-def side(package: Path | None, args: argparse.Namespace, views: Path, codebooks: Path) -> float:
-    """One side's median (ms), in a fresh process (``package``: REV's tree)."""
-    env = dict(os.environ)
-    if package is not None:
-        env["PYTHONPATH"] = str(package)
-    command = [sys.executable, __file__, "--child", str(views), str(codebooks), str(args.repeats)]
-    out = subprocess.run(
-        command + (["--frame"] if args.frame else []), env=env, check=True, capture_output=True, text=True
-    )
-    return float(out.stdout.split("median_ms")[-1])
+class Side:
+    """One side's live process (``package``: REV's tree; None: this checkout)."""
+
+    def __init__(self, package: Path | None, args: argparse.Namespace, views: Path, codebooks: Path) -> None:
+        env = dict(os.environ)
+        if package is not None:
+            env["PYTHONPATH"] = str(package)
+        command = [sys.executable, __file__, "--child", str(views), str(codebooks), str(args.repeats)]
+        self.process = subprocess.Popen(
+            command + (["--frame"] if args.frame else []),
+            env=env,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        ready = self._line()
+        self.views = int(ready.split()[1])
+
+    def _line(self) -> str:
+        assert self.process.stdout is not None
+        line = self.process.stdout.readline()
+        if not line:
+            raise RuntimeError(f"a side's process ended (exit status {self.process.wait()})")
+        return line
+
+    def estimate(self, views: range) -> list[float]:
+        """The views' estimate times in turn, seconds (``repeats`` a view)."""
+        assert self.process.stdin is not None
+        self.process.stdin.write(" ".join(map(str, views)) + "\n")
+        self.process.stdin.flush()
+        return [float(t) for t in self._line().split()]
+
+    def close(self) -> None:
+        assert self.process.stdin is not None
+        self.process.stdin.close()
+        self.process.wait()
 
 
 def main() -> None:
@@ -129,11 +168,12 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("rev", help="the earlier commit, tag or branch")
-    parser.add_argument("--rounds", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=2, help="timed estimates of each view per round")
+    parser.add_argument("--rounds", type=int, default=4, help="pairs of fresh processes")
+    parser.add_argument("--repeats", type=int, default=2, help="timed estimates of each view per turn")
     parser.add_argument("--level", default="clean", help="stress level (edgepose.eval.stress.STRESS_LEVELS)")
     parser.add_argument("--views", type=int, default=RENDERED_VIEWS, help="views per mesh")
     parser.add_argument("--frame", action="store_true", help="estimate given the depth frame too")
+    parser.add_argument("--turn", type=int, default=10, help="views a side estimates before the other's turn")
     args = parser.parse_args()
     package = built(args.rev)
     views = rendered(args.level, args.views)
@@ -141,20 +181,34 @@ def main() -> None:
         "+changes" if git("status", "--porcelain", "--untracked-files=no") else ""
     )
     print(f"{args.rev} against {head}: {args.level}, {args.views} views per mesh × {args.repeats}", flush=True)
-    then, now = [], []
+    then: dict[int, list[float]] = {}
+    now: dict[int, list[float]] = {}
+    rounds = []
     here = tempfile.TemporaryDirectory()  # this checkout's codebooks: its code may change them
     for r in range(args.rounds):
-        then.append(side(package, args, views, package.parent / "codebooks"))
-        now.append(side(None, args, views, Path(here.name)))
-        print(
-            f"round {r}: {args.rev} {then[-1]:.3f} ms, here {now[-1]:.3f} ms, ratio {now[-1] / then[-1]:.3f}",
-            flush=True,
-        )
-    a, b = statistics.median(then), statistics.median(now)
-    ratios = [n / t for n, t in zip(now, then)]
+        old, new = Side(package, args, views, package.parent / "codebooks"), Side(None, args, views, Path(here.name))
+        old_times, new_times = [], []
+        for first in range(0, old.views, args.turn):
+            turn = range(first, min(first + args.turn, old.views))
+            pair = (old, new) if (first // args.turn + r) % 2 == 0 else (new, old)
+            for side in pair:
+                times = side.estimate(turn)
+                (old_times if side is old else new_times).extend(times)
+                for i, view in enumerate(turn):
+                    (then if side is old else now).setdefault(view, []).extend(
+                        times[i * args.repeats : (i + 1) * args.repeats]
+                    )
+        old.close()
+        new.close()
+        a, b = 1e3 * statistics.median(old_times), 1e3 * statistics.median(new_times)
+        rounds.append(b / a)
+        print(f"round {r}: {args.rev} {a:.3f} ms, here {b:.3f} ms, ratio {b / a:.3f}", flush=True)
+    a = 1e3 * statistics.median(t for ts in then.values() for t in ts)
+    b = 1e3 * statistics.median(t for ts in now.values() for t in ts)
+    per_view = [statistics.median(now[v]) / statistics.median(then[v]) for v in then]
     print(
         f"medians: {args.rev} {a:.3f} ms, here {b:.3f} ms; ratio of medians {b / a:.3f}, "
-        f"median ratio {statistics.median(ratios):.3f} (rounds {min(ratios):.2f}–{max(ratios):.2f})"
+        f"median per-view ratio {statistics.median(per_view):.3f} (rounds {min(rounds):.3f}–{max(rounds):.3f})"
     )
 
 
