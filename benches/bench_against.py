@@ -2,14 +2,18 @@
 the pose benchmark's views, interleaved view by view on the same machine:
 how the speed issue's "half of the day's median" is measured.
 
-    .venv/bin/python benches/bench_against.py REV [--rounds 4] [--repeats 2] [--turn 10]
+    .venv/bin/python benches/bench_against.py REV [--rounds 8] [--repeats 2] [--turn 10]
                                               [--level clean] [--frame] [--views 20]
 
 ``REV`` (a commit, tag or branch) is built once into
 ``benches/.cache/against/<sha>/`` (its ``python/`` tree and its Rust core,
 compiled with maturin: a few minutes; its target directory is kept there
-for the next run). Views: ``bench_pose.py``'s, rendered once (the five YCB
-meshes, ``--views`` per mesh at ``--level``, the same seeds). Each round
+for the next run). This checkout's core is compiled the same way (a
+release wheel, default features: not the editable build it imports) into
+``benches/.cache/against/worktree-<hash>/`` once per state of its Rust
+sources, and its ``python/`` tree copied beside it for the run. Views:
+``bench_pose.py``'s, rendered once (the five YCB meshes, ``--views`` per
+mesh at ``--level``, the same seeds). Each round
 starts one process per side (``REV``'s tree, this checkout's), which builds
 (or reads back) its codebooks and estimates each view once to warm up
 (``REV``'s codebooks are kept beside its build, this checkout's for the run
@@ -18,16 +22,17 @@ the two take turns of ``--turn`` views, each estimating each view
 ``--repeats`` times in a row while the other waits (the side that goes
 first alternates): the machine's pace drifts by tens of per cent between
 minutes, and a turn lasts a fraction of a second. A turn of one view puts
-each side's first estimate after the other's, its caches cold. Printed: each
-round's two medians and their ratio, then the
-median of each side over all rounds, the ratio of those medians, the median
-of the per-view ratios (each view's median time here over ``REV``'s) and
-the range of the rounds' ratios.
+each side's first estimate after the other's, its caches cold. Printed:
+each round's two medians and their ratio, then the median of each side
+over all rounds, the ratio of those medians, the median of the per-view
+ratios (each view's median time here over ``REV``'s) and the range of the
+rounds' ratios.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import pickle
 import shutil
@@ -59,17 +64,51 @@ def built(rev: str) -> Path:
     archive = subprocess.run(["git", "archive", sha], cwd=REPO, check=True, capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(source)], input=archive, check=True)
     print(f"building {rev} ({sha[:10]}) in {source} ...", flush=True)
-    maturin = Path(sys.executable).with_name("maturin")
-    env = dict(os.environ, CARGO_TARGET_DIR=str(home / "target"))
-    subprocess.run(
-        [str(maturin), "build", "--release", "--quiet", "-o", str(home / "dist")], cwd=source, env=env, check=True
-    )
-    wheel = max((home / "dist").glob("*.whl"), key=lambda p: p.stat().st_mtime)
+    core = compiled(source, home / "target", home / "dist")
     shutil.rmtree(package, ignore_errors=True)
     (source / "python").rename(package)
-    with zipfile.ZipFile(wheel) as z:
-        (package / "edgepose" / "_core.abi3.so").write_bytes(z.read("edgepose/_core.abi3.so"))
+    (package / "edgepose" / "_core.abi3.so").write_bytes(core)
     return package
+
+
+def built_here(into: Path) -> Path:
+    """This working tree's ``python/`` tree, copied into ``into``, with its
+    Rust core compiled as ``REV``'s is (a release wheel, default features;
+    not the editable build a checkout imports, whose features and layout
+    differ): built once per state of the Rust sources and build files."""
+    listed = git("ls-files", "--cached", "--others", "--exclude-standard").splitlines()
+    files = sorted(f for f in listed if (REPO / f).is_file())
+    inputs = [f for f in files if f.startswith("rust/") or f in ("Cargo.toml", "Cargo.lock", "pyproject.toml")]
+    digest = hashlib.sha256()
+    for name in inputs:
+        digest.update(name.encode() + b"\0" + (REPO / name).read_bytes() + b"\0")
+    home = CACHE / f"worktree-{digest.hexdigest()[:16]}"
+    core = home / "_core.abi3.so"
+    if not core.is_file():
+        source = home / "source"
+        shutil.rmtree(source, ignore_errors=True)
+        # The build reads the top level's files too (the README, the licence).
+        for name in sorted({*inputs, *(f for f in files if f.startswith("python/") or "/" not in f)}):
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / name, source / name)
+        print(f"building the working tree's core in {source} ...", flush=True)
+        # One target directory for every state of the tree: builds after a small change are incremental.
+        core.write_bytes(compiled(source, CACHE / "worktree-target", home / "dist"))
+    package = into / "python"
+    shutil.copytree(REPO / "python", package, ignore=shutil.ignore_patterns("_core.abi3.so", "__pycache__"))
+    shutil.copy2(core, package / "edgepose" / "_core.abi3.so")
+    return package
+
+
+def compiled(source: Path, target: Path, dist: Path) -> bytes:
+    """The compiled core (``_core.abi3.so``) of the tree at ``source``: a
+    release wheel built by maturin into ``dist``, Cargo's output in ``target``."""
+    maturin = Path(sys.executable).with_name("maturin")
+    env = dict(os.environ, CARGO_TARGET_DIR=str(target))
+    subprocess.run([str(maturin), "build", "--release", "--quiet", "-o", str(dist)], cwd=source, env=env, check=True)
+    wheel = max(dist.glob("*.whl"), key=lambda p: p.stat().st_mtime)
+    with zipfile.ZipFile(wheel) as z:
+        return z.read("edgepose/_core.abi3.so")
 
 
 def rendered(level: str, views: int) -> Path:
@@ -123,12 +162,10 @@ def child(views: Path, codebooks: Path, repeats: int, frame: bool) -> None:
 
 
 class Side:
-    """One side's live process (``package``: REV's tree; None: this checkout)."""
+    """One side's live process, importing edgepose from ``package``."""
 
-    def __init__(self, package: Path | None, args: argparse.Namespace, views: Path, codebooks: Path) -> None:
-        env = dict(os.environ)
-        if package is not None:
-            env["PYTHONPATH"] = str(package)
+    def __init__(self, package: Path, args: argparse.Namespace, views: Path, codebooks: Path) -> None:
+        env = dict(os.environ, PYTHONPATH=str(package))
         command = [sys.executable, __file__, "--child", str(views), str(codebooks), str(args.repeats)]
         self.process = subprocess.Popen(
             command + (["--frame"] if args.frame else []),
@@ -168,7 +205,7 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("rev", help="the earlier commit, tag or branch")
-    parser.add_argument("--rounds", type=int, default=4, help="pairs of fresh processes")
+    parser.add_argument("--rounds", type=int, default=8, help="pairs of fresh processes")
     parser.add_argument("--repeats", type=int, default=2, help="timed estimates of each view per turn")
     parser.add_argument("--level", default="clean", help="stress level (edgepose.eval.stress.STRESS_LEVELS)")
     parser.add_argument("--views", type=int, default=RENDERED_VIEWS, help="views per mesh")
@@ -184,9 +221,11 @@ def main() -> None:
     then: dict[int, list[float]] = {}
     now: dict[int, list[float]] = {}
     rounds = []
-    here = tempfile.TemporaryDirectory()  # this checkout's codebooks: its code may change them
+    here = tempfile.TemporaryDirectory()  # this checkout's tree and codebooks: its code may change them
+    tree = built_here(Path(here.name))
     for r in range(args.rounds):
-        old, new = Side(package, args, views, package.parent / "codebooks"), Side(None, args, views, Path(here.name))
+        old = Side(package, args, views, package.parent / "codebooks")
+        new = Side(tree, args, views, Path(here.name) / "codebooks")
         old_times, new_times = [], []
         for first in range(0, old.views, args.turn):
             turn = range(first, min(first + args.turn, old.views))
