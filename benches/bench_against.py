@@ -26,13 +26,15 @@ each side's first estimate after the other's, its caches cold. Printed:
 each round's two medians and their ratio, then the median of each side
 over all rounds, the ratio of those medians, the median of the per-view
 ratios (each view's median time here over ``REV``'s) and the range of the
-rounds' ratios.
+rounds' ratios; then each side's stage laps (``Pose.timings``, as each
+side names its stages), ms per estimate.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import os
 import pickle
 import shutil
@@ -133,8 +135,9 @@ def child(views: Path, codebooks: Path, repeats: int, frame: bool) -> None:
     """Runs in the side's own process (only ``edgepose``'s public API, which
     ``REV`` has too): warms up, prints ``ready``, then for each view index
     read from stdin (several to a line: a turn) estimates that view
-    ``repeats`` times and prints the turn's times in seconds; stops at end
-    of input."""
+    ``repeats`` times and prints the turn's times in seconds; at the end of
+    input prints the timed estimates' stage laps (``Pose.timings``: each
+    stage's seconds summed over them, and their count) as JSON."""
     import edgepose
 
     codebooks.mkdir(parents=True, exist_ok=True)
@@ -150,15 +153,21 @@ def child(views: Path, codebooks: Path, repeats: int, frame: bool) -> None:
     for cloud, codebook, scene in work:
         edgepose.estimate(cloud, codebook, **scene)
     print(f"ready {len(work)}", flush=True)
+    laps: dict[str, float] = {}
+    timed = 0
     for line in sys.stdin:
         times = []
         for view in map(int, line.split()):
             cloud, codebook, scene = work[view]
             for _ in range(repeats):
                 start = time.perf_counter()
-                edgepose.estimate(cloud, codebook, **scene)
+                pose = edgepose.estimate(cloud, codebook, **scene)
                 times.append(time.perf_counter() - start)
+                timed += 1
+                for stage, seconds in pose.timings.items():
+                    laps[stage] = laps.get(stage, 0.0) + seconds
         print(" ".join(f"{t:.9f}" for t in times), flush=True)
+    print(json.dumps({"laps": laps, "estimates": timed}), flush=True)
 
 
 class Side:
@@ -191,10 +200,13 @@ class Side:
         self.process.stdin.flush()
         return [float(t) for t in self._line().split()]
 
-    def close(self) -> None:
+    def close(self) -> dict:
+        """Ends the process; its stage laps (see :func:`child`)."""
         assert self.process.stdin is not None
         self.process.stdin.close()
+        laps = json.loads(self._line())
         self.process.wait()
+        return laps
 
 
 def main() -> None:
@@ -221,6 +233,8 @@ def main() -> None:
     then: dict[int, list[float]] = {}
     now: dict[int, list[float]] = {}
     rounds = []
+    stages: dict[str, dict[str, float]] = {"then": {}, "now": {}}
+    estimates = {"then": 0, "now": 0}
     here = tempfile.TemporaryDirectory()  # this checkout's tree and codebooks: its code may change them
     tree = built_here(Path(here.name))
     for r in range(args.rounds):
@@ -237,8 +251,11 @@ def main() -> None:
                     (then if side is old else now).setdefault(view, []).extend(
                         times[i * args.repeats : (i + 1) * args.repeats]
                     )
-        old.close()
-        new.close()
+        for key, side in (("then", old), ("now", new)):
+            laps = side.close()
+            estimates[key] += laps["estimates"]
+            for stage, seconds in laps["laps"].items():
+                stages[key][stage] = stages[key].get(stage, 0.0) + seconds
         a, b = 1e3 * statistics.median(old_times), 1e3 * statistics.median(new_times)
         rounds.append(b / a)
         print(f"round {r}: {args.rev} {a:.3f} ms, here {b:.3f} ms, ratio {b / a:.3f}", flush=True)
@@ -249,6 +266,11 @@ def main() -> None:
         f"medians: {args.rev} {a:.3f} ms, here {b:.3f} ms; ratio of medians {b / a:.3f}, "
         f"median per-view ratio {statistics.median(per_view):.3f} (rounds {min(rounds):.3f}–{max(rounds):.3f})"
     )
+    print("stage laps, ms per estimate (mean; a stage that ran in some estimates only counts 0 in the others):")
+    print(f"  {'stage':<20}{args.rev:>10}{'here':>10}{'ratio':>8}")
+    for stage in dict.fromkeys([*stages["then"], *stages["now"]]):
+        a, b = (1e3 * stages[k].get(stage, 0.0) / max(estimates[k], 1) for k in ("then", "now"))
+        print(f"  {stage:<20}{a:>10.3f}{b:>10.3f}" + (f"{b / a:>8.2f}" if a > 0 else f"{'':>8}"))
 
 
 if __name__ == "__main__":
