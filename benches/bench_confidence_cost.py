@@ -31,7 +31,8 @@ inside an estimate ("off" mode's ``rival get``): the work, and what
 running it cold, after the rest of the estimate, adds. Both two-core modes give the same
 poses and confidences (checked); the near-tie polish may change a pose
 (counted, with the estimates in which it polished a tie, and the time
-spent in :func:`edgepose.stages.tie_broken`). The machine is noisy: compare
+spent in :func:`edgepose.stages.pick_hypothesis`, which scores the
+hypotheses and polishes a tie). The machine is noisy: compare
 the modes, not runs.
 """
 
@@ -145,21 +146,21 @@ def main() -> None:
             seeds = [SEED_BASE + k * 100 + i for i in range(3)]
             bench = load_object(mesh, seeds, name=part, symmetric=codebook.symmetry.symmetric, stress=level)
             views += [(level, codebook, cloud) for cloud in bench.clouds]
-    clocks = {name: Clock() for name in ("polished", "rival start", "polish", "rival get", "tie_broken")}
+    clocks = {name: Clock() for name in ("polished", "rival start", "polish", "rival get", "pick")}
     clocks["polished"].wrap(refine, "polished")
     clocks["rival start"].wrap(refine.RivalSearch, "__init__")
     clocks["polish"].wrap(refine, "polish")
     clocks["rival get"].wrap(refine.RivalSearch, "get")
-    clocks["tie_broken"].wrap(refine, "tie_broken")
-    timed_tie_broken = refine.tie_broken
+    clocks["pick"].wrap(refine, "pick_hypothesis")
+    timed_pick = refine.pick_hypothesis
     tie_polished = [False]
 
     def watched(*args, **kwargs):  # notes whether a tie was polished (its polish handed on)
-        pick, fine = timed_tie_broken(*args, **kwargs)
-        tie_polished[0] |= fine is not None
-        return pick, fine
+        picked = timed_pick(*args, **kwargs)
+        tie_polished[0] |= picked is not None and picked.tie_polish is not None
+        return picked
 
-    refine.tie_broken = watched
+    refine.pick_hypothesis = watched
     per_view: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
     warm: list[float] = []
     changed = tied = 0

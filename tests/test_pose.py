@@ -164,14 +164,15 @@ def test_distinct_hypotheses_skip_near_duplicates():
 
 def test_a_near_tie_between_rival_hypotheses_goes_to_the_lower_polished_rmse():
     """A block with a post on top, seen with the post in view: the true pose
-    and its half turn (the post on the wrong end) given equal coarse RMSEs,
-    the turn picked. Polishing both (the real ICP) tells them apart: the
-    true pose wins, and its polish is handed on, the same as polishing it
+    and its half turn (the post on the wrong end), both competing, the
+    turn's coarse RMSE a hair lower, so the turn is picked. Polishing both
+    (the real ICP, asked for the pick first) tells them apart: the true
+    pose wins, and its polish is handed on, the same as polishing it
     alone. No tie (the turn's RMSE well below), no polish
-    (``refine.icp_iterations=0``) or ``refine.tie_polish_within=0``: the pick stands,
-    unpolished."""
-    from edgepose.settings import DEFAULT_SETTINGS as S
-    from edgepose.stages import polish, tie_broken
+    (``refine.icp_iterations=0``) or ``refine.tie_polish_within=0``: the pick
+    stands, unpolished. No usable ICP result: no pick."""
+    from edgepose.settings import DEFAULT_SETTINGS
+    from edgepose.stages import pick_hypothesis, polish
     from edgepose.views import rotation_about
 
     block = trimesh.creation.box([0.16, 0.06, 0.03])
@@ -186,19 +187,34 @@ def test_a_near_tie_between_rival_hypotheses_goes_to_the_lower_polished_rmse():
     half_turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi)
     R = np.stack([T[:3, :3], T[:3, :3] @ half_turn])
     t = np.stack([T[:3, 3] + r @ codebook.model.centre for r in R])  # model frame -> camera
-    starts, both = np.array([0, 1]), np.array([True, True])
+    # Every usable hypothesis competes, whatever it explains.
+    S = DEFAULT_SETTINGS.with_(**{"refine.hypothesis_inlier_ratio": 0.0, "refine.hypothesis_free_space_margin": 1.0})
+    coarse = query.sample(S.refine.hypothesis_points, S.subsample_seed)
+    asked = []
 
-    def pick(rmse, settings=S):
-        return tie_broken(query, codebook, R, t, np.array(rmse), both, 1, starts, settings, {})
+    def polish_tie(tie):
+        asked.append(tie)
+        return polish(query, codebook, R[tie], t[tie], S)
 
-    won, fine = pick([1e-3, 1e-3])
-    assert won == 0 and len(fine) == 1
+    def pick(rmse, settings=S, inliers=(200, 200)):
+        asked.clear()
+        return pick_hypothesis(query, codebook, coarse, R, t, np.array(inliers), np.array(rmse), settings, polish_tie)
+
+    found = pick([1e-3, 0.99e-3])
+    assert asked == [[1, 0]] and found.pick == 0 and len(found.tie_polish) == 1
     alone = polish(query, codebook, R[:1], t[:1], S)
     for name in ("rotations", "translations", "inliers", "rmse"):
-        np.testing.assert_array_equal(getattr(fine, name), getattr(alone, name))
-    assert pick([1e-3, 0.5e-3]) == (1, None)
-    assert pick([1e-3, 1e-3], S.with_(**{"refine.tie_polish_within": 0.0})) == (1, None)
-    assert pick([1e-3, 1e-3], S.with_(**{"refine.icp_iterations": 0})) == (1, None)
+        np.testing.assert_array_equal(getattr(found.tie_polish, name), getattr(alone, name))
+    assert found.rmse_ratio == 1e-3 / 0.99e-3  # the winner's coarse RMSE over its competing rival's
+    assert found.margin == found.scores.net[0] - found.scores.net[1]
+    for rmse, settings in [
+        ([1e-3, 0.5e-3], S),
+        ([1e-3, 0.99e-3], S.with_(**{"refine.tie_polish_within": 0.0})),
+        ([1e-3, 0.99e-3], S.with_(**{"refine.icp_iterations": 0})),
+    ]:
+        found = pick(rmse, settings)
+        assert (found.pick, found.tie_polish, asked) == (1, None, []), (rmse, settings.refine)
+    assert pick([1e-3, 0.99e-3], inliers=(3, 3)) is None
 
 
 def test_same_input_same_pose_and_saved_codebook_same_pose(drill, tmp_path):

@@ -1,5 +1,7 @@
 """Type stubs of the compiled core (private; use the `edgepose` API)."""
 
+from collections.abc import Callable
+
 import numpy as np
 import numpy.typing as npt
 
@@ -23,6 +25,9 @@ def map_features(
 def top_k(
     codes: npt.NDArray[np.float32], query: npt.NDArray[np.float32], k: int
 ) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
+def distinct_rotations(
+    rotations: npt.NDArray[np.float64], order: npt.NDArray[np.int64], count: int, cos_min: float
+) -> list[int]: ...
 def segment_object(
     cloud: npt.NDArray[np.float32], diameter: float, settings: SegmentSettings
 ) -> tuple[npt.NDArray[np.bool_], float]: ...
@@ -165,6 +170,23 @@ class FlipSettings:
         settled: int,
         settle_iterations: int,
         settle_distance: float,
+    ) -> None: ...
+
+class PickRules:
+    def __init__(
+        self,
+        *,
+        min_icp_inliers: int,
+        max_centre_offset: float,
+        inlier_distance: float,
+        free_space_tolerance: float,
+        model_stride: int,
+        inlier_ratio: float,
+        free_space_margin: float,
+        tie_polish_within: float,
+        rival_distance: float,
+        rival_points: int,
+        symmetric: bool,
     ) -> None: ...
 
 class FlipMarginSearch:
@@ -311,6 +333,18 @@ class ModelIndex:
         two_cores: bool = False,
         converged: float = ...,
     ) -> IcpResults: ...
+    def pick_hypothesis(
+        self,
+        observed: npt.NDArray[np.float32],
+        free_space: DepthGrid,
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        inliers: npt.NDArray[np.uint32],
+        rmse: npt.NDArray[np.float64],
+        centroid: npt.NDArray[np.float64],
+        rules: PickRules,
+        polish_tie: Callable[[list[int]], IcpResults],
+    ) -> tuple[int, IcpResults | None, ScoreResults, npt.NDArray[np.bool_], float, float] | None: ...
     def pose_distances(
         self,
         rotations: npt.NDArray[np.float64],

@@ -8,6 +8,7 @@ pub mod confidence;
 pub mod error;
 pub mod flips;
 pub mod grouping;
+pub mod hypotheses;
 pub mod index;
 pub mod maps;
 pub mod model;

@@ -7,6 +7,7 @@ Poses are model frame → camera; metres.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -15,7 +16,7 @@ from edgepose import _core
 from edgepose.codebook import Codebook
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages.query import Query
-from edgepose.stages.scoring import PoseScores, free_space_tolerance, near_the_cloud, score_poses
+from edgepose.stages.scoring import PoseScores, free_space_tolerance, near_the_cloud, pose_scores, score_poses
 
 
 class FlipRival(NamedTuple):
@@ -210,7 +211,7 @@ def refine_hypotheses(
     """Stage 5: coarse ICP from the ``settings.refine.hypotheses`` best distinct
     candidates, each scored again. Hypotheses that explain nearly as many
     points as the best and violate free space little more than the least
-    violating compete; the lowest ICP RMSE wins (near ties: :func:`tie_broken`)
+    violating compete; the lowest ICP RMSE wins (near ties: :func:`pick_hypothesis`)
     and is polished by a longer ICP. None when no ICP found enough points.
 
     ``icp_cache`` (a dict kept between calls on the same query and the same
@@ -237,21 +238,19 @@ def refine_hypotheses(
         for i, s in enumerate(new):  # ICP runs each start on its own: one at a time is the same
             cache["coarse", s] = (icp.rotations[i], icp.translations[i], icp.inliers[i], icp.rmse[i])
     hyp_R, hyp_t, inliers, rmse = (np.array(x) for x in zip(*(cache["coarse", int(s)] for s in starts)))
-    usable = usable_icp(query, codebook, inliers, rmse, hyp_t, settings)
-    if not usable.any():
+
+    def polished_tie(tie: list[int]) -> _core.IcpResults:
+        key = ("tie", tuple(int(starts[h]) for h in tie))
+        if key not in cache:
+            cache[key] = polish(query, codebook, hyp_R[tie], hyp_t[tie], settings)
+        return cache[key]
+
+    picked = pick_hypothesis(query, codebook, coarse, hyp_R, hyp_t, inliers, rmse, settings, polished_tie)
+    if picked is None:
         return None
+    pick, tie_polish, scores, usable, margin, rmse_ratio = picked
     inlier_distance = settings.refine.hypothesis_inlier_distance * d
-    scores = score_poses(query, codebook, coarse, hyp_R, hyp_t, inlier_distance, 0.0, settings)
-    explains = scores.inlier_fraction >= settings.refine.hypothesis_inlier_ratio * scores.inlier_fraction[usable].max()
-    free = scores.violation <= scores.violation[usable].min() + settings.refine.hypothesis_free_space_margin
-    competing = usable & explains & free
-    pick = int(np.argmin(np.where(competing, rmse, np.inf)))
-    pick, tie_polish = tie_broken(query, codebook, hyp_R, hyp_t, rmse, competing, pick, starts, settings, cache)
     net = scores.net
-    rivals = usable & (pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d)
-    margin = float(net[pick] - net[rivals].max()) if rivals.any() else 1.0
-    competitors = rivals & competing
-    rmse_ratio = float(rmse[pick] / rmse[competitors].min()) if competitors.any() else 0.0
     chosen = int(starts[pick])
     if ("fine", chosen) not in cache:
         cache["fine", chosen] = polished(query, codebook, hyp_R[pick], hyp_t[pick], settings, done=tie_polish)
@@ -273,44 +272,6 @@ def refine_hypotheses(
             fine = score_poses(query, codebook, coarse, fine_R, fine_t, inlier_distance, 0.0, settings)
             best = best._replace(R=fine_R[0], t=fine_t[0], scores=fine)
     return best
-
-
-def tie_broken(
-    query: Query,
-    codebook: Codebook,
-    hyp_R: np.ndarray,
-    hyp_t: np.ndarray,
-    rmse: np.ndarray,
-    competing: np.ndarray,
-    pick: int,
-    starts: np.ndarray,
-    settings: EstimateSettings,
-    cache: dict,
-) -> tuple[int, _core.IcpResults | None]:
-    """Stage 5's pick among hypotheses (model frame → camera; ``rmse`` their
-    coarse ICP RMSEs) once near ties are broken, and the pick's polish when
-    one was made: when ``competing`` rivals of ``pick`` (more than
-    ``RIVAL_DISTANCE`` × d away) have an RMSE within
-    ``settings.refine.tie_polish_within`` of its, each of them and ``pick`` are
-    polished (:func:`polish`) and the lowest polished RMSE of a usable ICP
-    wins (the first on equal RMSEs). ``pick`` itself when there is no such
-    tie, no polish (``settings.refine.icp_iterations`` 0) or no usable polish. The
-    polishes are kept in ``cache`` under the tied ``starts``."""
-    if settings.refine.tie_polish_within <= 0 or settings.refine.icp_iterations == 0:
-        return pick, None
-    d = codebook.model.diameter
-    rivals = pose_distances(codebook, hyp_R, hyp_t, pick) > RIVAL_DISTANCE * d
-    tied = np.flatnonzero(competing & rivals & (rmse <= rmse[pick] * (1 + settings.refine.tie_polish_within)))
-    if not len(tied):
-        return pick, None
-    tie = np.concatenate([[pick], tied])
-    key = ("tie", tuple(int(starts[h]) for h in tie))
-    if key not in cache:
-        cache[key] = polish(query, codebook, hyp_R[tie], hyp_t[tie], settings)
-    fine = cache[key]
-    usable = usable_icp(query, codebook, fine.inliers, fine.rmse, fine.translations, settings)
-    won = int(np.argmin(np.where(usable, fine.rmse, np.inf))) if usable.any() else 0
-    return int(tie[won]), fine.row(won)
 
 
 #: Hypotheses farther apart than this × d (ADD, or ADD-S for a symmetric
@@ -423,6 +384,79 @@ def polish(
     )
 
 
+class Pick(NamedTuple):
+    """:func:`pick_hypothesis`'s outcome."""
+
+    pick: int
+    """The winning hypothesis."""
+    tie_polish: _core.IcpResults | None
+    """Its polish when a near tie was broken by polishing (results of one), else None."""
+    scores: PoseScores
+    """Every hypothesis's terms on the hypotheses' observed points."""
+    usable: np.ndarray
+    """(H,) bool: which hypotheses' ICP results are usable (:func:`usable_icp`)."""
+    margin: float
+    """See :attr:`Refined.margin`."""
+    rmse_ratio: float
+    """See :attr:`Refined.rmse_ratio`."""
+
+
+def pick_hypothesis(
+    query: Query,
+    codebook: Codebook,
+    observed: np.ndarray,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    inliers: np.ndarray,
+    rmse: np.ndarray,
+    settings: EstimateSettings,
+    polish_tie: Callable[[list[int]], _core.IcpResults],
+) -> Pick | None:
+    """Stage 5's pick among hypotheses (model frame → camera, after their
+    coarse ICP: its ``inliers`` and ``rmse``), scored on the ``observed``
+    points at ``settings.refine.hypothesis_inlier_distance``; None when no
+    ICP result is usable (:func:`usable_icp`). Hypotheses that explain at
+    least ``settings.refine.hypothesis_inlier_ratio`` of the best one's
+    inliers and violate free space at most ``settings.refine.hypothesis_free_space_margin``
+    more than the least violating compete; the lowest RMSE wins. When
+    competing rivals (more than ``RIVAL_DISTANCE`` × d away) come within
+    ``settings.refine.tie_polish_within`` of its RMSE, ``polish_tie`` gets
+    their indices, the pick first, and returns their polishes; the lowest
+    polished RMSE of a usable polish wins (the first on equal RMSEs). One
+    call to the Rust core (``rust/src/hypotheses.rs``)."""
+    d = codebook.model.diameter
+    inlier_distance = settings.refine.hypothesis_inlier_distance * d
+    rules = _core.PickRules(
+        min_icp_inliers=settings.refine.min_icp_inliers,
+        # The centre's allowance as :func:`near_the_cloud` computes it.
+        max_centre_offset=float(settings.refine.max_centre_offset * (1.0 / codebook.model.scale)),
+        inlier_distance=inlier_distance,
+        free_space_tolerance=free_space_tolerance(query.median_depth, d, settings),
+        model_stride=max(settings.score.free_space_model_stride, 1),
+        inlier_ratio=settings.refine.hypothesis_inlier_ratio,
+        free_space_margin=settings.refine.hypothesis_free_space_margin,
+        tie_polish_within=settings.refine.tie_polish_within if settings.refine.icp_iterations > 0 else 0.0,
+        rival_distance=RIVAL_DISTANCE * d,
+        rival_points=RIVAL_POINTS,
+        symmetric=codebook.symmetry.symmetric,
+    )
+    picked = codebook.index.pick_hypothesis(
+        observed,
+        query.free_space,
+        np.ascontiguousarray(rotations, dtype=np.float64),
+        np.ascontiguousarray(translations, dtype=np.float64),
+        np.ascontiguousarray(inliers, dtype=np.uint32),
+        np.ascontiguousarray(rmse, dtype=np.float64),
+        query.centroid,
+        rules,
+        polish_tie,
+    )
+    if picked is None:
+        return None
+    pick, tie_polish, scored, usable, margin, rmse_ratio = picked
+    return Pick(pick, tie_polish, pose_scores(scored, inlier_distance, 0.0), usable, margin, rmse_ratio)
+
+
 def usable_icp(
     query: Query,
     codebook: Codebook,
@@ -457,12 +491,11 @@ def pose_distances(codebook: Codebook, rotations: np.ndarray, translations: np.n
 def distinct_hypotheses(rotations: np.ndarray, order: np.ndarray, count: int, min_angle_deg: float) -> np.ndarray:
     """Indices of up to ``count`` of ``rotations`` ((K, 3, 3)), taken in
     ``order``, each at least ``min_angle_deg`` away from those taken before."""
-    cos_min = np.cos(np.radians(min_angle_deg))
-    kept: list[int] = []
-    for j in order:
-        # cos of the angle between two rotations: (trace(Raᵀ Rb) − 1) / 2.
-        if all((np.einsum("ij,ij->", rotations[j], rotations[k]) - 1) / 2 < cos_min for k in kept):
-            kept.append(int(j))
-            if len(kept) == count:
-                break
+    # The cosine of the angle between two rotations: (trace(Raᵀ Rb) − 1) / 2, in the core.
+    kept = _core.distinct_rotations(
+        np.ascontiguousarray(rotations, dtype=np.float64),
+        np.ascontiguousarray(order, dtype=np.int64),
+        count,
+        float(np.cos(np.radians(min_angle_deg))),
+    )
     return np.asarray(kept, dtype=np.intp)

@@ -85,6 +85,12 @@ def score_poses(
         free_space_tolerance(query.median_depth, d, settings),
         0 if fit_only else max(settings.score.free_space_model_stride, 1),
     )
+    return pose_scores(scored, inlier_distance, free_space_weight)
+
+
+def pose_scores(scored: _core.ScoreResults, inlier_distance: float, free_space_weight: float) -> PoseScores:
+    """The core's scores of poses (at ``inlier_distance`` metres) as
+    :class:`PoseScores`, ranked with ``free_space_weight``."""
     fit, violation, scene = scored.fit, scored.free_space_violation, scored.scene_violation
     return PoseScores(
         fit=fit,

@@ -10,7 +10,7 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::arrays::{matrix_array, points_array, rotations_array, triples};
+use super::arrays::{matrix_array, points_array, rotations_array, rotations_from, triples};
 use super::{guarded, InvalidCloudError, InvalidModelError};
 use crate::index::{ModelIndex, Pose};
 use crate::query::{self, CleanSettings, Pinhole, QuerySettings};
@@ -18,7 +18,7 @@ use crate::scoring::SceneDepth;
 use crate::segment::{segment, SegmentSettings};
 use crate::support::{self, SupportSettings};
 use crate::track::{self, TrackFrameSettings, TrackedFit, TrackedScene};
-use crate::{grouping, maps, sampling, search, views, visibility, Point3};
+use crate::{grouping, hypotheses, maps, sampling, search, views, visibility, Point3};
 use std::sync::Arc;
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -29,6 +29,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(map_features, m)?)?;
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
+    m.add_function(wrap_pyfunction!(distinct_rotations, m)?)?;
     m.add_class::<PySegmentSettings>()?;
     m.add_function(wrap_pyfunction!(segment_object, m)?)?;
     m.add_function(wrap_pyfunction!(back_project, m)?)?;
@@ -186,6 +187,37 @@ fn view_rotation<'py>(
         }
         let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
         Ok(matrix_array(py, &r))
+    })
+}
+
+/// Up to `count` of `rotations` (V, 3, 3), taken in `order` (indices),
+/// each less alike every one taken before than `cos_min` (the cosine of
+/// the angle between two rotations): see the core's `hypotheses::distinct`.
+#[pyfunction]
+fn distinct_rotations(
+    rotations: PyReadonlyArray3<'_, f64>,
+    order: PyReadonlyArray1<'_, i64>,
+    count: usize,
+    cos_min: f64,
+) -> PyResult<Vec<usize>> {
+    guarded(|| {
+        let rotations = rotations_from(&rotations)?;
+        let order = order
+            .as_array()
+            .iter()
+            .map(|&i| {
+                usize::try_from(i)
+                    .ok()
+                    .filter(|&i| i < rotations.len())
+                    .ok_or_else(|| {
+                        PyValueError::new_err(format!(
+                            "order holds {i}, not one of the {} rotations",
+                            rotations.len()
+                        ))
+                    })
+            })
+            .collect::<PyResult<Vec<usize>>>()?;
+        Ok(hypotheses::distinct(&rotations, &order, count, cos_min))
     })
 }
 

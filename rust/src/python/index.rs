@@ -14,6 +14,7 @@ use super::functions::{scene_of_frame, track_frame_of};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
 use crate::flips::{flip_margin, pose_distances, FlipMargin, FlipSettings};
+use crate::hypotheses::{pick, PickRules};
 use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::query::Pinhole;
@@ -282,6 +283,86 @@ impl PyModelIndex {
             };
             let scores = py.detach(|| score_poses(&self.inner, o, grid, &poses, &settings));
             Ok(PyScoreResults { scores })
+        })
+    }
+
+    /// Stage 5's pick among refined hypotheses (model → camera:
+    /// `rotations` (H, 3, 3), `translations` (H, 3); their coarse ICP's
+    /// `inliers` (H,) and `rmse` (H,)), scored on the `observed` points
+    /// against the `free_space` grid by `rules` (see the core's
+    /// `hypotheses` module); `centroid` (3,) is the observed one (camera
+    /// frame). A near tie's hypotheses (a list of indices, the pick first)
+    /// go to `polish_tie`, which returns their polishes as `IcpResults`.
+    /// `(pick, its tie polish or None, scores (ScoreResults), usable (H,)
+    /// bool, margin, rmse_ratio)`, or None when no hypothesis is usable.
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    fn pick_hypothesis<'py>(
+        &self,
+        py: Python<'py>,
+        observed: PyReadonlyArray2<'py, f32>,
+        free_space: &Bound<'py, PyDepthGrid>,
+        rotations: PyReadonlyArray3<'py, f64>,
+        translations: PyReadonlyArray2<'py, f64>,
+        inliers: PyReadonlyArray1<'py, u32>,
+        rmse: PyReadonlyArray1<'py, f64>,
+        centroid: PyReadonlyArray1<'py, f64>,
+        rules: &PyPickRules,
+        polish_tie: Bound<'py, PyAny>,
+    ) -> PyResult<
+        Option<(
+            usize,
+            Option<PyIcpResults>,
+            PyScoreResults,
+            Bound<'py, PyArray1<bool>>,
+            f64,
+            f64,
+        )>,
+    > {
+        guarded(|| {
+            let o = cloud_triples(&observed, "observed")?;
+            let grid = &free_space.get().inner;
+            let poses = poses_from(&rotations, &translations)?;
+            let inliers: Vec<usize> = inliers.as_array().iter().map(|&i| i as usize).collect();
+            let rmse = rmse.as_slice()?;
+            let centroid = match centroid.as_slice()? {
+                [x, y, z] => nalgebra::Vector3::new(*x, *y, *z),
+                _ => return Err(PyValueError::new_err("centroid must be 3 values")),
+            };
+            if inliers.len() != poses.len() || rmse.len() != poses.len() {
+                return Err(PyValueError::new_err(
+                    "one inlier count and RMSE per hypothesis",
+                ));
+            }
+            let polish_tie = polish_tie.unbind();
+            let polish = |tie: &[usize]| -> PyResult<Vec<IcpResult>> {
+                Python::attach(|py| {
+                    let out = polish_tie.bind(py).call1((tie.to_vec(),))?;
+                    let results = &out.cast::<PyIcpResults>()?.get().results;
+                    if results.len() != tie.len() {
+                        return Err(PyValueError::new_err(
+                            "polish_tie must return one result per hypothesis",
+                        ));
+                    }
+                    Ok(results.clone())
+                })
+            };
+            let rules = rules.inner;
+            let index = &self.inner;
+            let picked = py.detach(|| {
+                pick(
+                    index, o, grid, &poses, &inliers, rmse, &centroid, &rules, polish,
+                )
+            })?;
+            Ok(picked.map(|p| {
+                (
+                    p.pick,
+                    p.polish.map(|r| PyIcpResults { results: vec![r] }),
+                    PyScoreResults { scores: p.scores },
+                    PyArray1::from_vec(py, p.usable),
+                    p.margin,
+                    p.rmse_ratio,
+                )
+            }))
         })
     }
 
@@ -640,6 +721,59 @@ impl PyFlipSettings {
                 settled,
                 settle_iterations,
                 settle_distance,
+            },
+        }
+    }
+
+    fn __repr__(&self) -> String {
+        format!("{:?}", self.inner)
+    }
+}
+
+/// How [`PyModelIndex::pick_hypothesis`] picks among refined hypotheses
+/// ([`PickRules`]; distances in metres), built on the Python side
+/// (`edgepose.stages.refine`, from `EstimateSettings.refine`).
+#[pyclass(frozen, name = "PickRules", module = "edgepose._core")]
+pub struct PyPickRules {
+    inner: PickRules,
+}
+
+#[pymethods]
+impl PyPickRules {
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (
+        *, min_icp_inliers, max_centre_offset, inlier_distance, free_space_tolerance, model_stride,
+        inlier_ratio, free_space_margin, tie_polish_within, rival_distance, rival_points, symmetric,
+    ))]
+    fn new(
+        min_icp_inliers: usize,
+        max_centre_offset: f64,
+        inlier_distance: f64,
+        free_space_tolerance: f64,
+        model_stride: usize,
+        inlier_ratio: f64,
+        free_space_margin: f64,
+        tie_polish_within: f64,
+        rival_distance: f64,
+        rival_points: usize,
+        symmetric: bool,
+    ) -> Self {
+        Self {
+            inner: PickRules {
+                min_icp_inliers,
+                max_centre_offset,
+                score: ScoreSettings {
+                    inlier_distance,
+                    free_space_tolerance,
+                    model_stride,
+                },
+                inlier_ratio,
+                free_space_margin,
+                tie_polish_within,
+                rival_distance,
+                rival_points,
+                symmetric,
             },
         }
     }

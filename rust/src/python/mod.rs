@@ -85,6 +85,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<index::PyIcpResults>()?;
     m.add_class::<index::PyScoreResults>()?;
     m.add_class::<index::PyFlipSettings>()?;
+    m.add_class::<index::PyPickRules>()?;
     m.add_class::<index::PyFlipMarginSearch>()?;
     m.add_class::<index::PyDepthGrid>()?;
     m.add_class::<index::PyTrackFrameSettings>()?;
