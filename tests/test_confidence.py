@@ -18,6 +18,18 @@ from edgepose.eval.metrics import acceptance, auroc, calibration
 from edgepose.settings import DEFAULT_SETTINGS
 
 
+def test_the_observed_box_is_numpys_column_by_column():
+    """The evidence's bounding box of a query's float32 points: each side
+    exactly the column's ``np.ptp`` (the core's one pass); none for no points."""
+    from edgepose.confidence import box_sides
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 7, 1536):
+        points = (rng.normal(size=(n, 3)) * [0.1, 0.03, 0.2] + [0.0, 0.1, 0.7]).astype(np.float32)
+        assert box_sides(points) == [float(np.ptp(points[:, k])) for k in range(3)], n
+    assert box_sides(np.zeros((0, 3), np.float32)) == [0.0, 0.0, 0.0]
+
+
 def test_shipped_networks_carry_a_confidence_model_over_known_features():
     manifest = json.loads((MODELS_DIR / "manifest.json").read_text())
     model = ConfidenceModel.from_manifest(manifest["confidence"])

@@ -25,6 +25,7 @@ def map_features(
 def top_k(
     codes: npt.NDArray[np.float32], query: npt.NDArray[np.float32], k: int
 ) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
+def box_sides(points: npt.NDArray[np.float32]) -> list[float]: ...
 def distinct_rotations(
     rotations: npt.NDArray[np.float64], order: npt.NDArray[np.int64], count: int, cos_min: float
 ) -> list[int]: ...
@@ -333,6 +334,17 @@ class ModelIndex:
         two_cores: bool = False,
         converged: float = ...,
     ) -> IcpResults: ...
+    def distinct_poses(
+        self,
+        rotations: npt.NDArray[np.float64],
+        translations: npt.NDArray[np.float64],
+        order: npt.NDArray[np.int64],
+        allowed: npt.NDArray[np.bool_],
+        count: int,
+        rival_distance: float,
+        symmetric: bool,
+        points: int,
+    ) -> list[int]: ...
     def pick_hypothesis(
         self,
         observed: npt.NDArray[np.float32],

@@ -293,10 +293,10 @@ def stricter_rules_of(info: dict[str, Any]) -> tuple[StricterRule, ...]:
 
 
 def box_sides(points: np.ndarray) -> list[float]:
-    """Bounding-box side lengths of (N, 3) points, metres (``observed_extent``
-    is their diagonal over d). Column by column: numpy reduces an (N, 3)
-    array along axis 0 ~8x slower."""
-    return [float(np.ptp(points[:, k])) for k in range(3)]
+    """Bounding-box side lengths of (N, 3) float32 points (a query's),
+    metres (``observed_extent`` is their diagonal over d): each column's
+    ``np.ptp``, in one pass of the Rust core."""
+    return list(_core.box_sides(points))
 
 
 @dataclass(frozen=True)

@@ -114,6 +114,49 @@ pub fn distinct(
     kept
 }
 
+/// Up to `count` of `poses`, taken in `order` (indices into them) where
+/// `allowed`, each farther than `rival_distance` (ADD, or ADD-S for a
+/// `symmetric` object, on the model's first `rival_points` points) from
+/// pose 0 and from each taken before: distinct alternatives to pose 0.
+#[allow(clippy::too_many_arguments)]
+pub fn distinct_poses(
+    index: &ModelIndex,
+    poses: &[Pose],
+    order: &[usize],
+    allowed: &[bool],
+    count: usize,
+    rival_distance: f64,
+    symmetric: bool,
+    rival_points: usize,
+) -> Vec<usize> {
+    if count == 0 || !allowed.iter().skip(1).any(|a| *a) {
+        return Vec::new(); // only pose 0 itself may qualify: no distances needed
+    }
+    let apart_from = |p: usize| {
+        pose_distances(index, poses, &poses[p], symmetric, rival_points)
+            .into_iter()
+            .map(|d| d > rival_distance)
+    };
+    let mut apart: Vec<bool> = allowed
+        .iter()
+        .zip(apart_from(0))
+        .map(|(a, b)| *a && b)
+        .collect();
+    let mut taken = Vec::with_capacity(count);
+    for &i in order {
+        if taken.len() == count {
+            break;
+        }
+        if apart[i] {
+            taken.push(i);
+            for (a, b) in apart.iter_mut().zip(apart_from(i)) {
+                *a &= b;
+            }
+        }
+    }
+    taken
+}
+
 /// Inlier fraction minus free-space and scene violations: how hypotheses compete.
 pub fn net(score: &PoseScore) -> f64 {
     score.inlier_fraction - (score.free_space_violation + score.scene_violation)
@@ -305,6 +348,29 @@ mod tests {
             distinct(&rotations, &[0, 1, 2, 3, 4], 9, cos_min),
             [0, 2, 4]
         );
+    }
+
+    #[test]
+    fn distinct_poses_are_apart_from_pose_zero_and_each_other() {
+        let (points, normals) = box_surface();
+        let index = ModelIndex::new(points, normals);
+        let at = |x: f64| Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(x, 0.0, 0.5),
+        };
+        let poses = [at(0.0), at(0.002), at(0.03), at(0.032), at(-0.03)];
+        let all = [true; 5];
+        let distinct = |order: &[usize], allowed: &[bool], count: usize| {
+            distinct_poses(&index, &poses, order, allowed, count, 0.01, false, 64)
+        };
+        assert_eq!(distinct(&[1, 2, 3, 4], &all, 3), [2, 4]);
+        assert_eq!(distinct(&[3, 2, 4], &all, 3), [3, 4]);
+        assert_eq!(distinct(&[1, 2, 3, 4], &all, 1), [2]);
+        assert_eq!(
+            distinct(&[1, 2, 3, 4], &[true, true, false, true, false], 3),
+            [3]
+        );
+        assert!(distinct(&[1, 2, 3, 4], &all, 0).is_empty());
     }
 
     #[test]

@@ -143,19 +143,16 @@ def distinct_poses(
     """Up to ``count`` indices of poses (model frame → camera), taken in
     ``order`` where ``allowed``, each more than ``RIVAL_DISTANCE`` × d from
     pose 0 and from those taken before."""
-    if count == 0 or not allowed[1:].any():  # only pose 0 itself may qualify: no distances needed
-        return []
-    apart = allowed & (pose_distances(codebook, rotations, translations, 0) > RIVAL_DISTANCE * codebook.model.diameter)
-    taken: list[int] = []
-    for i in order:
-        if len(taken) == count:
-            break
-        if apart[i]:
-            taken.append(int(i))
-            apart &= (
-                pose_distances(codebook, rotations, translations, int(i)) > RIVAL_DISTANCE * codebook.model.diameter
-            )
-    return taken
+    return codebook.index.distinct_poses(
+        np.ascontiguousarray(rotations, dtype=np.float64),
+        np.ascontiguousarray(translations, dtype=np.float64),
+        np.ascontiguousarray(order, dtype=np.int64),
+        np.ascontiguousarray(allowed, dtype=bool),
+        count,
+        RIVAL_DISTANCE * codebook.model.diameter,
+        codebook.symmetry.symmetric,
+        RIVAL_POINTS,
+    )
 
 
 class Refined(NamedTuple):

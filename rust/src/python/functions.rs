@@ -30,6 +30,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
     m.add_function(wrap_pyfunction!(distinct_rotations, m)?)?;
+    m.add_function(wrap_pyfunction!(box_sides, m)?)?;
     m.add_class::<PySegmentSettings>()?;
     m.add_function(wrap_pyfunction!(segment_object, m)?)?;
     m.add_function(wrap_pyfunction!(back_project, m)?)?;
@@ -475,6 +476,28 @@ fn prepare_query<'py>(
             points_array(py, &prepared.map),
             points_array(py, &prepared.keypoints),
         ))
+    })
+}
+
+/// The side lengths of the bounding box of (N, 3) float32 points along
+/// each axis, in their units: each largest minus smallest coordinate in
+/// float32, as numpy's `ptp` of each column gives them (0 for no points).
+#[pyfunction]
+fn box_sides(points: PyReadonlyArray2<'_, f32>) -> PyResult<[f64; 3]> {
+    guarded(|| {
+        let p = triples(&points, "points").map_err(PyValueError::new_err)?;
+        Ok(std::array::from_fn(|a| {
+            let (lo, hi) = p
+                .iter()
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), q| {
+                    (lo.min(q[a]), hi.max(q[a]))
+                });
+            if p.is_empty() {
+                0.0
+            } else {
+                (hi - lo) as f64
+            }
+        }))
     })
 }
 

@@ -14,7 +14,7 @@ use super::functions::{scene_of_frame, track_frame_of};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
 use crate::flips::{flip_margin, pose_distances, FlipMargin, FlipSettings};
-use crate::hypotheses::{pick, PickRules};
+use crate::hypotheses::{distinct_poses, pick, PickRules};
 use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::query::Pinhole;
@@ -361,6 +361,60 @@ impl PyModelIndex {
                     PyArray1::from_vec(py, p.usable),
                     p.margin,
                     p.rmse_ratio,
+                )
+            }))
+        })
+    }
+
+    /// Up to `count` of the poses (model → camera: `rotations` (H, 3, 3),
+    /// `translations` (H, 3)), taken in `order` where `allowed` (H,), each
+    /// farther than `rival_distance` metres (ADD, or ADD-S when
+    /// `symmetric`, on the model's first `points` points) from pose 0 and
+    /// from those taken before: see the core's `hypotheses::distinct_poses`.
+    #[allow(clippy::too_many_arguments)]
+    fn distinct_poses(
+        &self,
+        py: Python<'_>,
+        rotations: PyReadonlyArray3<'_, f64>,
+        translations: PyReadonlyArray2<'_, f64>,
+        order: PyReadonlyArray1<'_, i64>,
+        allowed: PyReadonlyArray1<'_, bool>,
+        count: usize,
+        rival_distance: f64,
+        symmetric: bool,
+        points: usize,
+    ) -> PyResult<Vec<usize>> {
+        guarded(|| {
+            let poses = poses_from(&rotations, &translations)?;
+            let allowed = allowed.as_slice()?;
+            if allowed.len() != poses.len() {
+                return Err(PyValueError::new_err("one allowed flag per pose"));
+            }
+            let order = order
+                .as_array()
+                .iter()
+                .map(|&i| {
+                    usize::try_from(i)
+                        .ok()
+                        .filter(|&i| i < poses.len())
+                        .ok_or_else(|| {
+                            PyValueError::new_err(format!(
+                                "order holds {i}, not one of the {} poses",
+                                poses.len()
+                            ))
+                        })
+                })
+                .collect::<PyResult<Vec<usize>>>()?;
+            Ok(py.detach(|| {
+                distinct_poses(
+                    &self.inner,
+                    &poses,
+                    &order,
+                    allowed,
+                    count,
+                    rival_distance,
+                    symmetric,
+                    points,
                 )
             }))
         })
