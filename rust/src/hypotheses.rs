@@ -411,22 +411,31 @@ mod tests {
                 })
                 .collect()
         };
+        let pick_in =
+            |hypotheses: &[Pose],
+             inliers: [usize; 2],
+             rmse: [f64; 2],
+             within: f64,
+             polish_tie: &mut dyn FnMut(&[usize]) -> Vec<IcpResult>| {
+                let rules = rules(within);
+                pick(
+                    &index,
+                    &seen,
+                    &grid,
+                    hypotheses,
+                    &inliers,
+                    &rmse,
+                    &centroid,
+                    &rules,
+                    |tie| Ok::<_, Infallible>(polish_tie(tie)),
+                )
+                .unwrap()
+            };
         let mut asked = Vec::new();
-        let picked = pick(
-            &index,
-            &seen,
-            &grid,
-            &hypotheses,
-            &[100, 100],
-            &[1e-3, 0.99e-3],
-            &centroid,
-            &rules(0.1),
-            |tie| {
-                asked.push(tie.to_vec());
-                Ok::<_, Infallible>(polish([2e-3, 1e-3]))
-            },
-        )
-        .unwrap()
+        let picked = pick_in(&hypotheses, [100, 100], [1e-3, 0.99e-3], 0.1, &mut |tie| {
+            asked.push(tie.to_vec());
+            polish([2e-3, 1e-3])
+        })
         .unwrap();
         assert_eq!(asked, [vec![1, 0]]);
         assert_eq!(picked.pick, 0);
@@ -439,20 +448,9 @@ mod tests {
         );
         assert_eq!(picked.rmse_ratio, 1e-3 / 0.99e-3);
         // No tie polish: the lower coarse RMSE stands, nothing polished.
-        let never =
-            |_: &[usize]| -> Result<Vec<IcpResult>, Infallible> { panic!("no tie to polish") };
-        let untied = pick(
-            &index,
-            &seen,
-            &grid,
-            &hypotheses,
-            &[100, 100],
-            &[1e-3, 0.99e-3],
-            &centroid,
-            &rules(0.0),
-            never,
-        )
-        .unwrap()
+        let untied = pick_in(&hypotheses, [100, 100], [1e-3, 0.99e-3], 0.0, &mut |_| {
+            panic!("no tie")
+        })
         .unwrap();
         assert_eq!((untied.pick, untied.polish.is_none()), (1, true));
         // Too few inliers, or the model's centre far from the cloud: not usable.
@@ -464,18 +462,9 @@ mod tests {
             },
         ];
         let outcome = |hypotheses: &[Pose], inliers: [usize; 2]| {
-            pick(
-                &index,
-                &seen,
-                &grid,
-                hypotheses,
-                &inliers,
-                &[1e-3, 1e-3],
-                &centroid,
-                &rules(0.1),
-                never,
-            )
-            .unwrap()
+            pick_in(hypotheses, inliers, [1e-3, 1e-3], 0.1, &mut |_| {
+                panic!("no tie")
+            })
             .map(|p| (p.pick, p.usable))
         };
         assert_eq!(outcome(&hypotheses, [3, 3]), None);

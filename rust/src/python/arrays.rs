@@ -4,7 +4,8 @@
 
 use numpy::ndarray::Array;
 use numpy::{
-    IntoPyArray, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+    IntoPyArray, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArrayMethods,
 };
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -12,6 +13,24 @@ use pyo3::prelude::*;
 use crate::index::Pose;
 use crate::views::Rotation;
 use crate::Point3;
+
+/// An `order` array's entries as indices into `len` of `what` (rotations,
+/// poses); `ValueError` naming the first that is not one.
+pub fn indices_into(
+    order: &PyReadonlyArray1<'_, i64>,
+    len: usize,
+    what: &str,
+) -> PyResult<Vec<usize>> {
+    order
+        .as_array()
+        .iter()
+        .map(|&i| {
+            usize::try_from(i).ok().filter(|&i| i < len).ok_or_else(|| {
+                PyValueError::new_err(format!("order holds {i}, not one of the {len} {what}"))
+            })
+        })
+        .collect()
+}
 
 /// Borrows an (N, 3) C-contiguous array as N triples, without copying; the
 /// error message names the array.

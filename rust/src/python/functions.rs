@@ -10,7 +10,9 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::arrays::{matrix_array, points_array, rotations_array, rotations_from, triples};
+use super::arrays::{
+    indices_into, matrix_array, points_array, rotations_array, rotations_from, triples,
+};
 use super::{guarded, InvalidCloudError, InvalidModelError};
 use crate::index::{ModelIndex, Pose};
 use crate::query::{self, CleanSettings, Pinhole, QuerySettings};
@@ -203,21 +205,7 @@ fn distinct_rotations(
 ) -> PyResult<Vec<usize>> {
     guarded(|| {
         let rotations = rotations_from(&rotations)?;
-        let order = order
-            .as_array()
-            .iter()
-            .map(|&i| {
-                usize::try_from(i)
-                    .ok()
-                    .filter(|&i| i < rotations.len())
-                    .ok_or_else(|| {
-                        PyValueError::new_err(format!(
-                            "order holds {i}, not one of the {} rotations",
-                            rotations.len()
-                        ))
-                    })
-            })
-            .collect::<PyResult<Vec<usize>>>()?;
+        let order = indices_into(&order, rotations.len(), "rotations")?;
         Ok(hypotheses::distinct(&rotations, &order, count, cos_min))
     })
 }

@@ -9,7 +9,7 @@ use pyo3::exceptions::{PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex};
 
-use super::arrays::{poses_from, rotations_array, translations_array, triples};
+use super::arrays::{indices_into, poses_from, rotations_array, translations_array, triples};
 use super::functions::{scene_of_frame, track_frame_of};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
@@ -390,21 +390,7 @@ impl PyModelIndex {
             if allowed.len() != poses.len() {
                 return Err(PyValueError::new_err("one allowed flag per pose"));
             }
-            let order = order
-                .as_array()
-                .iter()
-                .map(|&i| {
-                    usize::try_from(i)
-                        .ok()
-                        .filter(|&i| i < poses.len())
-                        .ok_or_else(|| {
-                            PyValueError::new_err(format!(
-                                "order holds {i}, not one of the {} poses",
-                                poses.len()
-                            ))
-                        })
-                })
-                .collect::<PyResult<Vec<usize>>>()?;
+            let order = indices_into(&order, poses.len(), "poses")?;
             Ok(py.detach(|| {
                 distinct_poses(
                     &self.inner,
