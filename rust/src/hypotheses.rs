@@ -65,7 +65,8 @@ pub struct Picked {
 impl PickRules {
     /// Whether an ICP result (its inlier pairs, RMSE and translation) is
     /// usable: enough inliers, a finite RMSE, the model's centre near the
-    /// observed `centroid` (numpy's norm: the squares summed in order).
+    /// observed `centroid` (numpy's norm: the squares summed in order). The
+    /// rule of `edgepose.stages.usable_icp`, which judges the polish.
     pub fn usable(
         &self,
         inliers: usize,
