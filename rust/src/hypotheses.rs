@@ -203,17 +203,14 @@ pub fn pick<E>(
         return Ok(None);
     }
     let scores = score_poses(index, observed, grid, hypotheses, &rules.score);
-    let usable_max = |term: &dyn Fn(&PoseScore) -> f64, pick_max: bool| {
-        let values = (0..n).filter(|&h| usable[h]).map(|h| term(&scores[h]));
-        if pick_max {
-            values.fold(f64::NEG_INFINITY, f64::max)
-        } else {
-            values.fold(f64::INFINITY, f64::min)
-        }
-    };
+    let usable_scores = || (0..n).filter(|&h| usable[h]).map(|h| &scores[h]);
     let violation = |s: &PoseScore| s.free_space_violation + s.scene_violation;
-    let most_explained = rules.inlier_ratio * usable_max(&|s| s.inlier_fraction, true);
-    let least_violation = usable_max(&violation, false) + rules.free_space_margin;
+    let most_explained = rules.inlier_ratio
+        * usable_scores()
+            .map(|s| s.inlier_fraction)
+            .fold(f64::NEG_INFINITY, f64::max);
+    let least_violation =
+        usable_scores().map(violation).fold(f64::INFINITY, f64::min) + rules.free_space_margin;
     let competing: Vec<bool> = (0..n)
         .map(|h| {
             usable[h]
@@ -261,16 +258,12 @@ pub fn pick<E>(
     let best_rival = (0..n)
         .filter(|&h| rivals[h])
         .map(|h| net(&scores[h]))
-        .fold(None, |best: Option<f64>, v| {
-            Some(best.map_or(v, |b| b.max(v)))
-        });
+        .reduce(f64::max);
     let margin = best_rival.map_or(1.0, |b| net(&scores[pick]) - b);
     let lowest_competitor = (0..n)
         .filter(|&h| rivals[h] && competing[h])
         .map(|h| rmse[h])
-        .fold(None, |best: Option<f64>, v| {
-            Some(best.map_or(v, |b| b.min(v)))
-        });
+        .reduce(f64::min);
     let rmse_ratio = lowest_competitor.map_or(0.0, |low| rmse[pick] / low);
     Ok(Some(Picked {
         pick,
