@@ -1,8 +1,10 @@
 """What the confidence costs an estimate, with the flip rival handed to one
 of the Rust core's threads before the final ICP polish and found after the
 polish in the caller's thread (``EstimateSettings.refine.flip_rival_beside_polish``
-on and off), in one process; or, with ``--setting refine.coarse_icp_on_two_cores``,
-what splitting the first search's coarse ICPs between two cores saves; or,
+on and off), in one process; or, with ``--setting refine.coarse_icp_on_two_cores``
+(``retrieve.candidates_on_two_cores``), what sharing the first search's
+coarse ICPs (the candidates' alignment and scores) with a second core
+saves; or,
 with ``--setting refine.tie_polish_within``, what polishing near ties costs (its
 default against 0, which turns it off).
 
@@ -68,7 +70,11 @@ LEVELS = "clean,visible40,spill5,occluded30_spill5"
 SEED_BASE = 777_900
 #: The settings that put work on a second core; each is compared on and off,
 #: and must give the same poses ...
-TWO_CORE_SETTINGS = ["refine.flip_rival_beside_polish", "refine.coarse_icp_on_two_cores"]
+TWO_CORE_SETTINGS = [
+    "refine.flip_rival_beside_polish",
+    "refine.coarse_icp_on_two_cores",
+    "retrieve.candidates_on_two_cores",
+]
 #: ... and those compared at their default ("on") and their "off" value.
 COMPARED_AGAINST = {
     **{name: (True, False) for name in TWO_CORE_SETTINGS},

@@ -462,20 +462,22 @@ def test_the_flip_rival_found_beside_the_polish_is_the_one_found_after_it(drill,
         assert beside.confidence == after.confidence and beside.evidence == after.evidence
 
 
-def test_coarse_icps_split_between_two_cores_give_the_same_poses(drill):
-    """The first search's few coarse ICPs split between the caller's thread
-    and one of the core's (``refine.coarse_icp_on_two_cores``, the default) or run
-    one after another: the same poses, confidences and evidence."""
+def test_work_shared_with_a_core_thread_gives_the_same_poses(drill):
+    """The candidates' alignment and scores (``retrieve.candidates_on_two_cores``)
+    and the first search's few coarse ICPs (``refine.coarse_icp_on_two_cores``),
+    shared between the caller's thread
+    and one of the core's (the defaults) or run on one: the same candidates,
+    poses, confidences and evidence."""
     mesh, codebook = drill
     settings = edgepose.EstimateSettings()
+    one_core = settings.with_(**{"refine.coarse_icp_on_two_cores": False, "retrieve.candidates_on_two_cores": False})
     for seed, occluders in [(4, 0), (12, 2), (22, 3)]:
         view = render_view(mesh, seed=seed, occluders=occluders)
-        split = edgepose.estimate(view.cloud, codebook, settings=settings)
-        serial = edgepose.estimate(
-            view.cloud, codebook, settings=settings.with_(**{"refine.coarse_icp_on_two_cores": False})
-        )
-        np.testing.assert_array_equal(split.matrix, serial.matrix)
-        assert split.confidence == serial.confidence and split.evidence == serial.evidence
+        shared = edgepose.estimate(view.cloud, codebook, settings=settings)
+        serial = edgepose.estimate(view.cloud, codebook, settings=one_core)
+        np.testing.assert_array_equal(shared.candidate_fit, serial.candidate_fit)
+        np.testing.assert_array_equal(shared.matrix, serial.matrix)
+        assert shared.confidence == serial.confidence and shared.evidence == serial.evidence
 
 
 def test_a_flip_rival_handed_to_a_core_thread_is_the_one_found_in_the_caller(drill):

@@ -300,6 +300,7 @@ class ModelIndex:
         translations: npt.NDArray[np.float64],
         iterations: int,
         max_distance: float,
+        two_cores: bool = False,
     ) -> npt.NDArray[np.float64]: ...
     def score(
         self,
@@ -310,6 +311,7 @@ class ModelIndex:
         inlier_distance: float,
         free_space_tolerance: float,
         model_stride: int,
+        two_cores: bool = False,
     ) -> ScoreResults: ...
     def track_frame(
         self,

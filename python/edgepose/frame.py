@@ -36,7 +36,11 @@ from edgepose.workers import each
 #: Objects searched in parallel already share the cores: each pose's coarse
 #: ICPs run one after another and its flip rival is found after its polish,
 #: not on another core beside them.
-ONE_CORE_EACH = {"refine.flip_rival_beside_polish": False, "refine.coarse_icp_on_two_cores": False}
+ONE_CORE_EACH = {
+    "refine.flip_rival_beside_polish": False,
+    "refine.coarse_icp_on_two_cores": False,
+    "retrieve.candidates_on_two_cores": False,
+}
 
 
 @dataclass(frozen=True, eq=False)

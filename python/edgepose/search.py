@@ -218,6 +218,7 @@ def scored(
         settings.retrieve.candidate_inlier_distance * codebook.model.diameter,
         settings.score.candidate_free_space_weight,
         settings,
+        two_cores=settings.retrieve.candidates_on_two_cores,
     )
     search.laps("score_poses")
     return Candidates(rotations, translations, scores, views, similarity)

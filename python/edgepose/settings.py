@@ -111,6 +111,14 @@ class RetrieveSettings:
     """× d. A keypoint this close to a candidate's model is an inlier; farther
     ones cost this much (truncated). Candidates are only as good as the
     2,100-view grid and the in-plane angle, so this is loose."""
+    candidates_on_two_cores: bool = True
+    """Share the candidates' keypoint alignment and their stage-4 scores
+    (2 to 63 candidates: a first search's ``k``) between the caller's
+    thread and one of the Rust core's (64 or more run on all the core's
+    threads anyway; each thread takes the next candidate not yet taken,
+    ``rust/src/threads.rs``, ``on_two_cores``): the same poses and
+    scores, sooner where a second core is free. :func:`edgepose.estimate_many`,
+    when its objects share the cores on several threads, runs them on one."""
 
 
 @dataclass(frozen=True)
@@ -184,13 +192,14 @@ class RefineSettings:
     min_icp_inliers: int = 16
     """An ICP result with fewer inlier pairs is not trusted."""
     coarse_icp_on_two_cores: bool = True
-    """Split the coarse ICPs of a search's new hypotheses, when there are
+    """Share the coarse ICPs of a search's new hypotheses, when there are
     2 or 3 (the first search's; the second search's starts not already
     refined by the first), between the caller's thread and one of the Rust
-    core's (4 or more run on all the core's threads anyway; the caller
-    runs the core's half itself if no thread has started it when its own
-    half is done, ``rust/src/threads.rs``, ``hand_over``): the same
-    poses, sooner where a second core is free. :func:`edgepose.estimate_many`,
+    core's (4 or more run on all the core's threads anyway; each thread
+    takes the next hypothesis not yet taken, so one slow to wake holds the
+    caller up by at most the one it took, ``rust/src/threads.rs``,
+    ``on_two_cores``): the same poses,
+    sooner where a second core is free. :func:`edgepose.estimate_many`,
     when its objects share the cores on several threads, runs them one
     after another."""
     flip_rival_beside_polish: bool = True

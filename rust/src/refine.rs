@@ -54,12 +54,11 @@ impl ModelIndex {
     /// verifies almost as well as the true one. Fewer than
     /// [`PARALLEL_STARTS`] starts run in the calling thread (a few
     /// sub-millisecond ICPs gain nothing from a whole pool, and waking one
-    /// can cost milliseconds on a busy CPU) or, with `two_cores`, the later
-    /// half of them handed to one of the pool's threads first
-    /// ([`threads::hand_over`]; the caller takes them back and runs them
-    /// itself when no thread has started them by the time its own half is
-    /// done, so a thread slow to wake costs nothing). Each start's result
-    /// is its own either way.
+    /// can cost milliseconds on a busy CPU) or, with `two_cores`, shared
+    /// with one of the pool's threads ([`threads::on_two_cores`]: each
+    /// takes the next start not yet taken, so a thread slow to wake costs
+    /// at most the start it took). Each start's result is its own either
+    /// way.
     pub fn refine_each(
         self: &Arc<Self>,
         cloud: &[Point3],
@@ -75,20 +74,12 @@ impl ModelIndex {
         if starts.len() >= PARALLEL_STARTS {
             threads::install(|| starts.par_iter().map(icp).collect())
         } else if two_cores && starts.len() >= 2 {
-            let (own, job) = starts.split_at(starts.len().div_ceil(2));
-            // The job owns its inputs: the index shared, the cloud (a few
-            // hundred points) and its starts copied.
-            let (index, points, job) = (Arc::clone(self), cloud.to_vec(), job.to_vec());
-            let later = threads::hand_over(move || {
-                job.iter()
-                    .map(|start| {
-                        index.refine_until(&points, *start, max_iterations, max_distance, converged)
-                    })
-                    .collect::<Vec<_>>()
-            });
-            let mut results: Vec<IcpResult> = own.iter().map(icp).collect();
-            results.extend(later.take());
-            results
+            // The loop owns its inputs: the index shared, the cloud (a few
+            // hundred points) and the starts copied.
+            let (index, points) = (Arc::clone(self), cloud.to_vec());
+            threads::on_two_cores(starts.to_vec(), move |start| {
+                index.refine_until(&points, *start, max_iterations, max_distance, converged)
+            })
         } else {
             starts.iter().map(icp).collect()
         }

@@ -23,6 +23,8 @@
 //!
 //! Camera frame (OpenCV), metres.
 
+use std::sync::Arc;
+
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
 
@@ -412,27 +414,58 @@ pub fn align_translations(
     max_distance: f64,
 ) -> Vec<Pose> {
     each_pose(poses, |start| {
-        let mut pose = *start;
-        for _ in 0..iterations {
-            let to_model = pose.inverse();
-            let (mut shift, mut paired) = (Vector3::zeros(), 0usize);
-            let moved: Vec<Vector3<f64>> = observed.iter().map(|p| to_model.apply(p)).collect();
-            let found = index.nearest_each_within(&as_queries(&moved), max_distance);
-            for (&m, found) in moved.iter().zip(found) {
-                if let Some((i, _)) = found {
-                    let q = index.points()[i];
-                    shift += Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64) - m;
-                    paired += 1;
-                }
-            }
-            if paired == 0 {
-                break;
-            }
-            // p = R·m + t should become R·q + t, so t moves by −R·(q − m).
-            pose.translation -= pose.rotation * (shift / paired as f64);
-        }
-        pose
+        align_translation(index, observed, start, iterations, max_distance)
     })
+}
+
+/// [`align_translations`] of the poses, the later half of them on one of
+/// the core's threads ([`threads::on_two_cores`]) when there are 2 to
+/// [`PARALLEL_FROM`]: the same translations, sooner where a second core
+/// is free.
+pub fn align_translations_on_two_cores(
+    index: &Arc<ModelIndex>,
+    observed: &[Point3],
+    poses: &[Pose],
+    iterations: usize,
+    max_distance: f64,
+) -> Vec<Pose> {
+    if !(2..PARALLEL_FROM).contains(&poses.len()) {
+        return align_translations(index, observed, poses, iterations, max_distance);
+    }
+    let (index, observed) = (Arc::clone(index), observed.to_vec());
+    threads::on_two_cores(poses.to_vec(), move |start| {
+        align_translation(&index, &observed, start, iterations, max_distance)
+    })
+}
+
+/// One pose of [`align_translations`].
+fn align_translation(
+    index: &ModelIndex,
+    observed: &[Point3],
+    start: &Pose,
+    iterations: usize,
+    max_distance: f64,
+) -> Pose {
+    let mut pose = *start;
+    for _ in 0..iterations {
+        let to_model = pose.inverse();
+        let (mut shift, mut paired) = (Vector3::zeros(), 0usize);
+        let moved: Vec<Vector3<f64>> = observed.iter().map(|p| to_model.apply(p)).collect();
+        let found = index.nearest_each_within(&as_queries(&moved), max_distance);
+        for (&m, found) in moved.iter().zip(found) {
+            if let Some((i, _)) = found {
+                let q = index.points()[i];
+                shift += Vector3::new(q[0] as f64, q[1] as f64, q[2] as f64) - m;
+                paired += 1;
+            }
+        }
+        if paired == 0 {
+            break;
+        }
+        // p = R·m + t should become R·q + t, so t moves by −R·(q − m).
+        pose.translation -= pose.rotation * (shift / paired as f64);
+    }
+    pose
 }
 
 /// Poses handled at once in parallel from this many on (the second search's
@@ -629,6 +662,31 @@ pub fn score_poses(
     let sample = ModelSample::new(index, settings.model_stride);
     each_pose(poses, |pose| {
         score_pose(index, &sample, observed, grid, pose, settings)
+    })
+}
+
+/// [`score_poses`], the later half of the poses on one of the core's
+/// threads ([`threads::on_two_cores`]) when there are 2 to [`PARALLEL_FROM`]:
+/// the same scores, sooner where a second core is free.
+pub fn score_poses_on_two_cores(
+    index: &Arc<ModelIndex>,
+    observed: &[Point3],
+    grid: &Arc<DepthGrid>,
+    poses: &[Pose],
+    settings: &ScoreSettings,
+) -> Vec<PoseScore> {
+    if !(2..PARALLEL_FROM).contains(&poses.len()) {
+        return score_poses(index, observed, grid, poses, settings);
+    }
+    let sample = ModelSample::new(index, settings.model_stride);
+    let (index, observed, grid, settings) = (
+        Arc::clone(index),
+        observed.to_vec(),
+        Arc::clone(grid),
+        *settings,
+    );
+    threads::on_two_cores(poses.to_vec(), move |pose| {
+        score_pose(&index, &sample, &observed, &grid, pose, &settings)
     })
 }
 
@@ -889,6 +947,35 @@ mod tests {
             "{error:?}"
         );
         assert_eq!(aligned.rotation, truth.rotation);
+    }
+
+    #[test]
+    fn two_cores_align_and_score_as_one() {
+        let truth = Pose {
+            rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.5).matrix(),
+            translation: Vector3::new(0.01, 0.0, 0.5),
+        };
+        let (index, cloud) = plate_seen_at(&truth);
+        let index = Arc::new(index);
+        let grid = Arc::new(DepthGrid::new(&cloud, 0.002, 2.0));
+        // 1 pose (run as it is), a first search's 16, and 64 (all of the pool's threads).
+        for count in [1, 16, PARALLEL_FROM] {
+            let poses: Vec<Pose> = (0..count)
+                .map(|i| Pose {
+                    rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.5 + 0.05 * i as f64)
+                        .matrix(),
+                    translation: truth.translation + Vector3::new(0.001 * i as f64, -0.002, 0.004),
+                })
+                .collect();
+            assert_eq!(
+                align_translations_on_two_cores(&index, &cloud, &poses, 3, 0.03),
+                align_translations(&index, &cloud, &poses, 3, 0.03)
+            );
+            assert_eq!(
+                score_poses_on_two_cores(&index, &cloud, &grid, &poses, &settings()),
+                score_poses(&index, &cloud, &grid, &poses, &settings())
+            );
+        }
     }
 
     #[test]

@@ -10,7 +10,7 @@
 
 use std::panic::{catch_unwind, resume_unwind, AssertUnwindSafe};
 use std::ptr;
-use std::sync::atomic::{AtomicBool, AtomicPtr, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicPtr, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use rayon::{ThreadPool, ThreadPoolBuilder};
@@ -158,6 +158,62 @@ pub fn hand_over<T: Send + 'static>(job: impl FnOnce() -> T + Send + 'static) ->
     handed
 }
 
+/// `f` of each of `items`, in order, on the caller's thread and one of the
+/// pool's ([`hand_over`]): each takes the next item not yet taken, so the
+/// caller never waits for a thread slow to wake longer than the item that
+/// thread took (none when it never started). Each item's result is its
+/// own, so the results are those of a plain loop.
+pub fn on_two_cores<I, T, F>(items: Vec<I>, f: F) -> Vec<T>
+where
+    I: Send + Sync + 'static,
+    T: Send + 'static,
+    F: Fn(&I) -> T + Send + Sync + 'static,
+{
+    let shared = Arc::new(SharedLoop {
+        items,
+        next: AtomicUsize::new(0),
+        f,
+    });
+    let theirs = {
+        let shared = Arc::clone(&shared);
+        hand_over(move || shared.take_each())
+    };
+    let mut results: Vec<Option<T>> = Vec::with_capacity(shared.items.len());
+    results.resize_with(shared.items.len(), || None);
+    for (i, result) in shared.take_each().into_iter().chain(theirs.take()) {
+        results[i] = Some(result);
+    }
+    results
+        .into_iter()
+        .map(|r| r.expect("every item is taken once"))
+        .collect()
+}
+
+/// The items of [`on_two_cores`], the next one not yet taken, and what is
+/// done to each.
+struct SharedLoop<I, F> {
+    items: Vec<I>,
+    next: AtomicUsize,
+    f: F,
+}
+
+impl<I, F> SharedLoop<I, F> {
+    /// Takes items until none is left: `(index, result)` of each taken.
+    fn take_each<T>(&self) -> Vec<(usize, T)>
+    where
+        F: Fn(&I) -> T,
+    {
+        let mut done = Vec::new();
+        loop {
+            let i = self.next.fetch_add(1, Ordering::Relaxed);
+            let Some(item) = self.items.get(i) else {
+                return done;
+            };
+            done.push((i, (self.f)(item)));
+        }
+    }
+}
+
 /// `job`, run by the thread that asks for its result ([`Handed::take`]),
 /// when it does: no worker is asked.
 pub fn later<T: Send + 'static>(job: impl FnOnce() -> T + Send + 'static) -> Handed<T> {
@@ -221,6 +277,23 @@ pub(crate) mod tests {
             "{names:?}"
         );
         assert!(std::ptr::eq(pool(), pool()));
+    }
+
+    #[test]
+    fn two_cores_give_each_items_result_in_order() {
+        for count in [0, 1, 2, 7, 100] {
+            let items: Vec<u64> = (0..count).collect();
+            let squares = on_two_cores(items, |i| {
+                // Uneven work, so the two threads take items out of step.
+                std::thread::sleep(std::time::Duration::from_micros(i % 3 * 50));
+                i * i
+            });
+            assert_eq!(squares, (0..count).map(|i| i * i).collect::<Vec<_>>());
+        }
+        // With every worker held, the caller takes every item itself.
+        let release = hold_the_workers();
+        assert_eq!(on_two_cores(vec![1, 2, 3], |i| i + 1), [2, 3, 4]);
+        drop(release);
     }
 
     /// Holds every worker of the process's pool until the returned sender

@@ -68,6 +68,7 @@ def candidate_poses(
             translations,
             settings.retrieve.align_iterations,
             settings.retrieve.candidate_inlier_distance * codebook.model.diameter,
+            two_cores=settings.retrieve.candidates_on_two_cores,
         )
     return rotations, translations
 

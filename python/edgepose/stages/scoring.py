@@ -69,12 +69,15 @@ def score_poses(
     free_space: _core.DepthGrid | None = None,
     *,
     fit_only: bool = False,
+    two_cores: bool = False,
 ) -> PoseScores:
     """Stage 4: the terms of each pose against the ``observed`` points (camera
     frame) and the free space of the whole query (``free_space``: another
     grid of it than :attr:`Query.free_space`). ``inlier_distance`` is in
     metres. ``fit_only``: the fit terms alone (fit, inlier fraction,
-    translation constraint), the free-space terms left at 0."""
+    translation constraint), the free-space terms left at 0. ``two_cores``:
+    the later half of the poses scored on one of the Rust core's threads
+    (``settings.retrieve.candidates_on_two_cores``)."""
     d = codebook.model.diameter
     scored = codebook.index.score(
         observed,
@@ -84,6 +87,7 @@ def score_poses(
         inlier_distance,
         free_space_tolerance(query.median_depth, d, settings),
         0 if fit_only else max(settings.score.free_space_model_stride, 1),
+        two_cores=two_cores,
     )
     return pose_scores(scored, inlier_distance, free_space_weight)
 

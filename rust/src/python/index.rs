@@ -19,7 +19,10 @@ use crate::index::{ModelIndex, Pose};
 use crate::pairs::PairSettings;
 use crate::query::Pinhole;
 use crate::refine::{IcpResult, CONVERGED};
-use crate::scoring::{align_translations, score_poses, DepthGrid, PoseScore, ScoreSettings};
+use crate::scoring::{
+    align_translations, align_translations_on_two_cores, score_poses, score_poses_on_two_cores,
+    DepthGrid, PoseScore, ScoreSettings,
+};
 use crate::threads::{self, Handed};
 use crate::track::TrackFrameSettings;
 use crate::{search, Point3};
@@ -224,7 +227,11 @@ impl PyModelIndex {
     }
 
     /// Each pose's translation moved so the `observed` points (camera frame)
-    /// land on the model (rotations kept): `translations (C, 3)`.
+    /// land on the model (rotations kept): `translations (C, 3)`; with
+    /// `two_cores`, the poses shared with one of the core's threads (the
+    /// same translations).
+    #[pyo3(signature = (observed, rotations, translations, iterations, max_distance, two_cores = false))]
+    #[allow(clippy::too_many_arguments)]
     fn align_translations<'py>(
         &self,
         py: Python<'py>,
@@ -233,6 +240,7 @@ impl PyModelIndex {
         translations: PyReadonlyArray2<'py, f64>,
         iterations: usize,
         max_distance: f64,
+        two_cores: bool,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         guarded(|| {
             let o = cloud_triples(&observed, "observed")?;
@@ -242,8 +250,19 @@ impl PyModelIndex {
                     "max_distance must be finite and non-negative, got {max_distance}"
                 )));
             }
-            let out =
-                py.detach(|| align_translations(&self.inner, o, &poses, iterations, max_distance));
+            let out = py.detach(|| {
+                if two_cores {
+                    align_translations_on_two_cores(
+                        &self.inner,
+                        o,
+                        &poses,
+                        iterations,
+                        max_distance,
+                    )
+                } else {
+                    align_translations(&self.inner, o, &poses, iterations, max_distance)
+                }
+            });
             Ok(translations_array(py, out.iter().map(|p| &p.translation)))
         })
     }
@@ -251,8 +270,13 @@ impl PyModelIndex {
     /// Scores each candidate pose (model → camera: `rotations` (C, 3, 3),
     /// `translations` (C, 3)) against the `observed` points and the whole
     /// observed cloud's `free_space` grid: [`PyScoreResults`] (see the
-    /// core's `scoring` module).
+    /// core's `scoring` module); with `two_cores`, the poses shared with one
+    /// of the core's threads (the same scores).
     #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (
+        observed, free_space, rotations, translations, inlier_distance, free_space_tolerance,
+        model_stride, two_cores = false,
+    ))]
     fn score<'py>(
         &self,
         py: Python<'py>,
@@ -263,6 +287,7 @@ impl PyModelIndex {
         inlier_distance: f64,
         free_space_tolerance: f64,
         model_stride: usize,
+        two_cores: bool,
     ) -> PyResult<PyScoreResults> {
         guarded(|| {
             let o = cloud_triples(&observed, "observed")?;
@@ -281,7 +306,13 @@ impl PyModelIndex {
                 free_space_tolerance,
                 model_stride,
             };
-            let scores = py.detach(|| score_poses(&self.inner, o, grid, &poses, &settings));
+            let scores = py.detach(|| {
+                if two_cores {
+                    score_poses_on_two_cores(&self.inner, o, grid, &poses, &settings)
+                } else {
+                    score_poses(&self.inner, o, grid, &poses, &settings)
+                }
+            });
             Ok(PyScoreResults { scores })
         })
     }
