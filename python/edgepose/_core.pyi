@@ -155,6 +155,17 @@ class ScoreResults:
     def translation_constraint(self) -> npt.NDArray[np.float64]: ...
     @property
     def scene_violation(self) -> npt.NDArray[np.float64]: ...
+    def terms(
+        self, inlier_distance: float, free_space_weight: float
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+    ]: ...
 
 class FlipSettings:
     def __init__(

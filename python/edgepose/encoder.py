@@ -131,6 +131,9 @@ class Encoder:
             session = self._encoder_one_map if len(chunks[i]) == 1 else self._encoder
             return session.run(None, dict(zip(ENCODER_INPUTS, features)))
 
+        if len(chunks) == 1:  # a query's map: its arrays as they come
+            codes, spectra = run(0)
+            return codes, spectra
         codes, spectra = zip(*each(run, len(chunks), self.threads))
         return np.concatenate(codes), np.concatenate(spectra)
 

@@ -223,6 +223,7 @@ def refine_hypotheses(
     )
     max_distance = settings.refine.icp_max_distance * d
     new = [int(s) for s in starts if ("coarse", int(s)) not in cache]
+    refined = None
     if new:
         icp = codebook.index.refine(
             coarse,
@@ -232,9 +233,13 @@ def refine_hypotheses(
             max_distance,
             two_cores=settings.refine.coarse_icp_on_two_cores,
         )
+        refined = icp.rotations, icp.translations, icp.inliers, icp.rmse
         for i, s in enumerate(new):  # ICP runs each start on its own: one at a time is the same
-            cache["coarse", s] = (icp.rotations[i], icp.translations[i], icp.inliers[i], icp.rmse[i])
-    hyp_R, hyp_t, inliers, rmse = (np.array(x) for x in zip(*(cache["coarse", int(s)] for s in starts)))
+            cache["coarse", s] = tuple(column[i] for column in refined)
+    if refined is not None and len(new) == len(starts):  # all just refined, in order (a first search)
+        hyp_R, hyp_t, inliers, rmse = refined
+    else:
+        hyp_R, hyp_t, inliers, rmse = (np.array(x) for x in zip(*(cache["coarse", int(s)] for s in starts)))
 
     def polished_tie(tie: list[int]) -> _core.IcpResults:
         key = ("tie", tuple(int(starts[h]) for h in tie))

@@ -94,17 +94,8 @@ def score_poses(
 
 def pose_scores(scored: _core.ScoreResults, inlier_distance: float, free_space_weight: float) -> PoseScores:
     """The core's scores of poses (at ``inlier_distance`` metres) as
-    :class:`PoseScores`, ranked with ``free_space_weight``."""
-    fit, violation, scene = scored.fit, scored.free_space_violation, scored.scene_violation
-    return PoseScores(
-        fit=fit,
-        inlier_fraction=scored.inlier_fraction,
-        free_space_violation=violation,
-        cost=fit / inlier_distance + free_space_weight * (violation + scene),
-        off_silhouette=scored.off_silhouette,
-        translation_constraint=scored.translation_constraint,
-        scene_violation=scene,
-    )
+    :class:`PoseScores`, ranked with ``free_space_weight`` (:attr:`PoseScores.cost`)."""
+    return PoseScores(*scored.terms(inlier_distance, free_space_weight))
 
 
 def rim_tolerant_violation(

@@ -915,6 +915,41 @@ impl PyScoreResults {
     fn scene_violation<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
         self.column(py, |s| s.scene_violation)
     }
+
+    /// Every term at once, as `edgepose.stages.PoseScores` orders them:
+    /// `(fit, inlier_fraction, free_space_violation, cost, off_silhouette,
+    /// translation_constraint, scene_violation)`, where cost is
+    /// `fit / inlier_distance + free_space_weight × (free-space + scene
+    /// violations)` (`inlier_distance` in metres), in numpy's order of
+    /// operations, so the same values bit for bit.
+    #[allow(clippy::type_complexity)]
+    fn terms<'py>(
+        &self,
+        py: Python<'py>,
+        inlier_distance: f64,
+        free_space_weight: f64,
+    ) -> (
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray1<f64>>,
+    ) {
+        (
+            self.column(py, |s| s.fit),
+            self.column(py, |s| s.inlier_fraction),
+            self.column(py, |s| s.free_space_violation),
+            self.column(py, |s| {
+                s.fit / inlier_distance
+                    + free_space_weight * (s.free_space_violation + s.scene_violation)
+            }),
+            self.column(py, |s| s.off_silhouette),
+            self.column(py, |s| s.translation_constraint),
+            self.column(py, |s| s.scene_violation),
+        )
+    }
 }
 
 /// ICP's outcome for each of H start poses, in order, as arrays.
