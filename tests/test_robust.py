@@ -55,6 +55,16 @@ def test_median_depth_is_numpys_median_of_z(dtype):
         assert median_depth(points) == float(np.median(points[:, 2])), n
 
 
+def test_the_querys_median_depth_is_numpys_median_of_its_z():
+    """The core's stage 1 gives the kept points' median depth as numpy does,
+    for an odd and an even count."""
+    rng = np.random.default_rng(6)
+    for n in [600, 601, 1535, 1536]:
+        points = rng.normal((0.02, -0.01, 0.7), (0.03, 0.03, 0.02), (n, 3)).astype(np.float32)
+        kept, *_, depth = _core.prepare_query(points, 0.12, 1.0, 512, 32, 32, None)
+        assert len(kept) == n and depth == float(np.median(kept[:, 2])), n
+
+
 def test_erosion_shrinks_the_mask_before_back_projection():
     depth, obj, _ = wall_with_square(mixed_column=False)
     cloud = edgepose.cloud_from_depth(depth, K, obj, depth_scale=1.0, erode_px=3, max_jump=None)

@@ -87,6 +87,7 @@ def prepare_query(
     npt.NDArray[np.float64],
     npt.NDArray[np.float32],
     npt.NDArray[np.float32],
+    float,
 ]: ...
 
 class StandardModel:

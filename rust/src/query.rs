@@ -454,6 +454,24 @@ pub(crate) fn median(mut values: Vec<f64>) -> f64 {
     0.5 * (lower + middle)
 }
 
+/// Median z of `points` (camera frame, metres; NaN for none) as numpy's
+/// `np.median` of their float32 z gives it: the middle value, or for an
+/// even count the two middle ones added and halved in float32.
+pub fn median_depth(points: &[Point3]) -> f64 {
+    let mut z: Vec<f32> = points.iter().map(|p| p[2]).collect();
+    let n = z.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    let (below, middle, _) = z.select_nth_unstable_by(n / 2, f32::total_cmp);
+    let middle = *middle;
+    if n % 2 == 1 {
+        return middle as f64;
+    }
+    let lower = below.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    ((lower + middle) / 2.0) as f64
+}
+
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
 }
@@ -486,6 +504,8 @@ pub struct Query {
     pub map: Vec<Point3>,
     /// The map's first `keypoints` points, back in the camera frame, metres.
     pub keypoints: Vec<Point3>,
+    /// Median z of `points`, metres ([`median_depth`]).
+    pub median_depth: f64,
 }
 
 /// Stage 1 on cleaned `points` ([`clean_cloud`]) of an object `diameter`
@@ -529,6 +549,7 @@ pub fn prepare_query(
         })
         .collect();
     Ok(Query {
+        median_depth: median_depth(&points),
         points,
         spacing,
         centroid,

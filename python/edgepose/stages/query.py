@@ -14,7 +14,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 
 from edgepose import _core
-from edgepose.cloud import MIN_POINTS, clean_cloud, median_depth
+from edgepose.cloud import MIN_POINTS, clean_cloud
 from edgepose.codebook import Codebook
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 
@@ -35,6 +35,9 @@ class Query:
     """(M, 3) float32 the corrected, centred, scaled and resampled map."""
     keypoints: np.ndarray
     """(KP, 3) float32 the map's first farthest-point samples, back in the camera frame."""
+    median_depth: float
+    """Median z of ``points``, metres (:func:`edgepose.cloud.median_depth`'s
+    value): the depth the sensor's noise is read at."""
     scene: SceneDepth | None = None
     """The frame's depth around the object, when the caller gave the depth
     image (:func:`scene_around`): the scene-violation test reads it."""
@@ -64,11 +67,6 @@ class Query:
         the observed silhouette read the nearest depth within one cell: what
         the doubt's free-space test reads (:func:`rim_tolerant_violation`)."""
         return _core.DepthGrid(self.points, self.spacing, edge_slack=True)
-
-    @cached_property
-    def median_depth(self) -> float:
-        """Median z of ``points``, metres: the depth the sensor's noise is read at."""
-        return median_depth(self.points)
 
     def sample(self, count: int, seed: int) -> np.ndarray:
         """:func:`subsample` of ``points`` (``count``, ``seed``), drawn once
@@ -191,7 +189,7 @@ def query_of_cleaned(
     (or :func:`edgepose.cloud.clean_depth_cloud`) already kept, at most
     ``settings.max_cloud_points`` of them."""
     model = codebook.model
-    points, spacing, centroid, r_corr, query_map, keypoints = _core.prepare_query(
+    points, spacing, centroid, r_corr, query_map, keypoints, depth = _core.prepare_query(
         off_support_plane(cleaned, frame, model.diameter, settings),
         model.diameter,
         model.scale,
@@ -201,7 +199,7 @@ def query_of_cleaned(
         settings.segmentation.core() if settings.segment else None,
     )
     scene = None if frame is None else scene_around(*frame, points, model.diameter)
-    return Query(points, spacing, centroid, r_corr, query_map, keypoints, scene)
+    return Query(points, spacing, centroid, r_corr, query_map, keypoints, depth, scene)
 
 
 def _pixel_span(lo: float, hi: float, size: int) -> tuple[int, int]:

@@ -416,8 +416,9 @@ fn clean_rows<T: numpy::Element + Copy + Into<f64> + Sync>(
 
 /// [`query::prepare_query`] (stage 1) on cleaned (N, 3) float32 `points`:
 /// `(points kept (n, 3) f32, spacing m, centroid (3,) f64, r_corr (3, 3)
-/// f64, map (map_points, 3) f32, keypoints (keypoints, 3) f32)`, the points
-/// segmented as `segmentation` tunes it; None keeps every point (spacing 0).
+/// f64, map (map_points, 3) f32, keypoints (keypoints, 3) f32, median depth
+/// of the points kept m)`, the points segmented as `segmentation` tunes it;
+/// None keeps every point (spacing 0).
 #[pyfunction]
 #[allow(clippy::too_many_arguments, clippy::type_complexity)]
 fn prepare_query<'py>(
@@ -436,6 +437,7 @@ fn prepare_query<'py>(
     Bound<'py, PyArray2<f64>>,
     Bound<'py, PyArray2<f32>>,
     Bound<'py, PyArray2<f32>>,
+    f64,
 )> {
     guarded(|| {
         let p = triples(&points, "points").map_err(InvalidCloudError::new_err)?;
@@ -463,6 +465,7 @@ fn prepare_query<'py>(
             matrix_array(py, &prepared.r_corr),
             points_array(py, &prepared.map),
             points_array(py, &prepared.keypoints),
+            prepared.median_depth,
         ))
     })
 }
