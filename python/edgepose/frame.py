@@ -33,9 +33,10 @@ from edgepose.stages import query_of_cleaned
 from edgepose.track import Tracker
 from edgepose.workers import each
 
-#: Objects searched in parallel already share the cores: each pose's coarse
-#: ICPs run one after another and its flip rival is found after its polish,
-#: not on another core beside them.
+#: Objects searched in parallel already share the cores: each object's
+#: candidates are aligned and scored, and its coarse ICPs run, one after
+#: another, and its flip rival is found after its polish, not on another
+#: core beside them.
 ONE_CORE_EACH = {
     "refine.flip_rival_beside_polish": False,
     "refine.coarse_icp_on_two_cores": False,

@@ -198,10 +198,9 @@ class RefineSettings:
     core's (4 or more run on all the core's threads anyway; each thread
     takes the next hypothesis not yet taken, so one slow to wake holds the
     caller up by at most the one it took, ``rust/src/threads.rs``,
-    ``on_two_cores``): the same poses,
-    sooner where a second core is free. :func:`edgepose.estimate_many`,
-    when its objects share the cores on several threads, runs them one
-    after another."""
+    ``on_two_cores``): the same poses, sooner where a second core is free.
+    :func:`edgepose.estimate_many`, when its objects share the cores on
+    several threads, runs them one after another."""
     flip_rival_beside_polish: bool = True
     """Hand the search for the confidence's turned rival of the pose (its
     flip margin's, :func:`edgepose.stages.flip_rival`) to one of the Rust

@@ -418,10 +418,10 @@ pub fn align_translations(
     })
 }
 
-/// [`align_translations`] of the poses, the later half of them on one of
-/// the core's threads ([`threads::on_two_cores`]) when there are 2 to
-/// [`PARALLEL_FROM`]: the same translations, sooner where a second core
-/// is free.
+/// [`align_translations`] of the poses, shared with one of the core's
+/// threads when there are 2 to [`PARALLEL_FROM`] ([`threads::on_two_cores`]:
+/// each thread takes the next pose not yet taken): the same translations,
+/// sooner where a second core is free.
 pub fn align_translations_on_two_cores(
     index: &Arc<ModelIndex>,
     observed: &[Point3],
@@ -665,9 +665,10 @@ pub fn score_poses(
     })
 }
 
-/// [`score_poses`], the later half of the poses on one of the core's
-/// threads ([`threads::on_two_cores`]) when there are 2 to [`PARALLEL_FROM`]:
-/// the same scores, sooner where a second core is free.
+/// [`score_poses`] of the poses, shared with one of the core's threads when
+/// there are 2 to [`PARALLEL_FROM`] ([`threads::on_two_cores`]: each thread
+/// takes the next pose not yet taken): the same scores, sooner where a
+/// second core is free.
 pub fn score_poses_on_two_cores(
     index: &Arc<ModelIndex>,
     observed: &[Point3],
@@ -927,12 +928,17 @@ mod tests {
         );
     }
 
-    #[test]
-    fn aligning_translations_undoes_a_shift() {
-        let truth = Pose {
+    /// The plate tilted half a metre in front of the camera.
+    fn tilted() -> Pose {
+        Pose {
             rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.5).matrix(),
             translation: Vector3::new(0.01, 0.0, 0.5),
-        };
+        }
+    }
+
+    #[test]
+    fn aligning_translations_undoes_a_shift() {
+        let truth = tilted();
         let (index, cloud) = plate_seen_at(&truth);
         let shifted = Pose {
             translation: truth.translation + Vector3::new(0.006, -0.004, 0.008),
@@ -951,10 +957,7 @@ mod tests {
 
     #[test]
     fn two_cores_align_and_score_as_one() {
-        let truth = Pose {
-            rotation: *Rotation3::from_euler_angles(0.3, -0.2, 0.5).matrix(),
-            translation: Vector3::new(0.01, 0.0, 0.5),
-        };
+        let truth = tilted();
         let (index, cloud) = plate_seen_at(&truth);
         let index = Arc::new(index);
         let grid = Arc::new(DepthGrid::new(&cloud, 0.002, 2.0));

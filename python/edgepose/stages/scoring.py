@@ -76,8 +76,8 @@ def score_poses(
     grid of it than :attr:`Query.free_space`). ``inlier_distance`` is in
     metres. ``fit_only``: the fit terms alone (fit, inlier fraction,
     translation constraint), the free-space terms left at 0. ``two_cores``:
-    the later half of the poses scored on one of the Rust core's threads
-    (``settings.retrieve.candidates_on_two_cores``)."""
+    the poses shared with one of the Rust core's threads (the same scores;
+    ``settings.retrieve.candidates_on_two_cores``)."""
     d = codebook.model.diameter
     scored = codebook.index.score(
         observed,
