@@ -12,7 +12,7 @@ import trimesh
 from edgepose import _core
 from edgepose.cloud import FLYING_PIXEL_JUMP, clean_cloud, depth_discontinuities, dilate, erode, median_depth
 from edgepose.eval import pose_errors, render_scene, render_view
-from edgepose.stages import near_the_cloud, on_support_plane, pair_poses, prepare_query
+from edgepose.stages import near_the_cloud, on_support_plane, pair_poses, prepare_query, usable_icp
 
 K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
 
@@ -173,6 +173,13 @@ def test_poses_far_from_the_observed_points_are_not_plausible(drill):
     beside = true_centre + [1.5 * radius, 0, 0]
     near = near_the_cloud(query.centroid, codebook, np.stack([true_centre, behind, beside]))
     assert near.tolist() == [True, False, False]
+    # The ICP results' rule (the core's): the same centres, and enough
+    # inliers and a finite RMSE besides.
+    translations = np.stack([true_centre, behind, beside, true_centre, true_centre])
+    inliers = np.array([100, 100, 100, 15, 100], np.uint32)
+    rmse = np.array([1e-3, 1e-3, 1e-3, 1e-3, np.nan])
+    usable = usable_icp(query, codebook, inliers, rmse, translations, edgepose.EstimateSettings())
+    assert usable.tolist() == [True, False, False, False, False]
     pose = edgepose.estimate(view.cloud, codebook)
     assert np.linalg.norm(pose.t + pose.R @ codebook.model.centre - query.centroid) <= 1.25 * radius
 

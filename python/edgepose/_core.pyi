@@ -26,6 +26,14 @@ def top_k(
     codes: npt.NDArray[np.float32], query: npt.NDArray[np.float32], k: int
 ) -> tuple[npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
 def box_sides(points: npt.NDArray[np.float32]) -> list[float]: ...
+def usable_icp(
+    inliers: npt.NDArray[np.uint32],
+    rmse: npt.NDArray[np.float64],
+    translations: npt.NDArray[np.float64],
+    centroid: npt.NDArray[np.float64],
+    min_icp_inliers: int,
+    max_centre_offset: float,
+) -> npt.NDArray[np.bool_]: ...
 def distinct_rotations(
     rotations: npt.NDArray[np.float64], order: npt.NDArray[np.int64], count: int, cos_min: float
 ) -> list[int]: ...

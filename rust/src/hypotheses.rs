@@ -63,10 +63,7 @@ pub struct Picked {
 }
 
 impl PickRules {
-    /// Whether an ICP result (its inlier pairs, RMSE and translation) is
-    /// usable: enough inliers, a finite RMSE, the model's centre near the
-    /// observed `centroid` (numpy's norm: the squares summed in order). The
-    /// rule of `edgepose.stages.usable_icp`, which judges the polish.
+    /// [`usable_icp`] by these rules' inlier count and centre offset.
     pub fn usable(
         &self,
         inliers: usize,
@@ -74,11 +71,35 @@ impl PickRules {
         t: &Vector3<f64>,
         centroid: &Vector3<f64>,
     ) -> bool {
-        let d = t - centroid;
-        rmse.is_finite()
-            && inliers >= self.min_icp_inliers
-            && (d.x * d.x + d.y * d.y + d.z * d.z).sqrt() <= self.max_centre_offset
+        usable_icp(
+            inliers,
+            rmse,
+            t,
+            centroid,
+            self.min_icp_inliers,
+            self.max_centre_offset,
+        )
     }
+}
+
+/// Whether an ICP result (its inlier pairs, RMSE and translation `t`,
+/// camera frame, metres) is usable: at least `min_icp_inliers` inliers, a
+/// finite RMSE, and the model's centre within `max_centre_offset` metres of
+/// the observed `centroid` (numpy's norm: the squares summed in order). The
+/// one rule for stage 5's hypotheses, the polish and the turned pose
+/// (`edgepose.stages.usable_icp`).
+pub fn usable_icp(
+    inliers: usize,
+    rmse: f64,
+    t: &Vector3<f64>,
+    centroid: &Vector3<f64>,
+    min_icp_inliers: usize,
+    max_centre_offset: f64,
+) -> bool {
+    let d = t - centroid;
+    rmse.is_finite()
+        && inliers >= min_icp_inliers
+        && (d.x * d.x + d.y * d.y + d.z * d.z).sqrt() <= max_centre_offset
 }
 
 /// Up to `count` of `rotations`, taken in `order` (indices into them),

@@ -16,7 +16,7 @@ from edgepose import _core
 from edgepose.codebook import Codebook
 from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings
 from edgepose.stages.query import Query
-from edgepose.stages.scoring import PoseScores, free_space_tolerance, near_the_cloud, pose_scores, score_poses
+from edgepose.stages.scoring import PoseScores, centre_allowance, free_space_tolerance, pose_scores, score_poses
 
 
 class FlipRival(NamedTuple):
@@ -430,8 +430,7 @@ def pick_hypothesis(
     inlier_distance = settings.refine.hypothesis_inlier_distance * d
     rules = _core.PickRules(
         min_icp_inliers=settings.refine.min_icp_inliers,
-        # The centre's allowance as :func:`near_the_cloud` computes it.
-        max_centre_offset=float(settings.refine.max_centre_offset * (1.0 / codebook.model.scale)),
+        max_centre_offset=centre_allowance(codebook, settings),
         inlier_distance=inlier_distance,
         free_space_tolerance=free_space_tolerance(query.median_depth, d, settings),
         model_stride=max(settings.score.free_space_model_stride, 1),
@@ -469,11 +468,16 @@ def usable_icp(
 ) -> np.ndarray:
     """(H,) bool: which ICP results (their inlier counts, RMSEs and
     translations, metres) to use: enough inliers, a finite RMSE, the
-    model's centre still near the cloud (:func:`near_the_cloud`)."""
-    return (
-        np.isfinite(rmse)
-        & (inliers >= settings.refine.min_icp_inliers)
-        & near_the_cloud(query.centroid, codebook, translations, settings)
+    model's centre still near the cloud (:func:`near_the_cloud`). The rule
+    stage 5's pick applies to its hypotheses, in the Rust core
+    (``rust/src/hypotheses.rs``, ``usable_icp``)."""
+    return _core.usable_icp(
+        np.ascontiguousarray(inliers, dtype=np.uint32),
+        np.ascontiguousarray(rmse, dtype=np.float64),
+        np.ascontiguousarray(translations, dtype=np.float64),
+        query.centroid,
+        settings.refine.min_icp_inliers,
+        centre_allowance(codebook, settings),
     )
 
 

@@ -129,5 +129,12 @@ def near_the_cloud(
     (H, 3) metres: where the model's centre lands) keeps the model's centre
     within ``settings.refine.max_centre_offset`` model radii of the observed
     ``centroid`` ((3,) camera frame, metres: :attr:`Query.centroid`)."""
+    return np.linalg.norm(translations - centroid, axis=1) <= centre_allowance(codebook, settings)
+
+
+def centre_allowance(codebook: Codebook, settings: EstimateSettings = DEFAULT_SETTINGS) -> float:
+    """How far (metres) a pose may put the model's centre from the observed
+    centroid: ``settings.refine.max_centre_offset`` model radii (each
+    observed point lies within one radius of the centre)."""
     radius = 1.0 / codebook.model.scale
-    return np.linalg.norm(translations - centroid, axis=1) <= settings.refine.max_centre_offset * radius
+    return float(settings.refine.max_centre_offset * radius)

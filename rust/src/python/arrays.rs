@@ -2,6 +2,7 @@
 //! input arrays, and owned output arrays. Shape problems come back as a
 //! message for the caller to raise as the right exception.
 
+use nalgebra::Vector3;
 use numpy::ndarray::Array;
 use numpy::{
     IntoPyArray, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3,
@@ -46,6 +47,14 @@ pub fn triples<'a, T: numpy::Element>(
         .as_slice()
         .map_err(|_| format!("{name} must be C-contiguous"))?;
     Ok(flat.as_chunks::<3>().0)
+}
+
+/// A vector from a contiguous array of 3 values; the error names it.
+pub fn vector3_from(array: &PyReadonlyArray1<'_, f64>, name: &str) -> PyResult<Vector3<f64>> {
+    match array.as_slice()? {
+        [x, y, z] => Ok(Vector3::new(*x, *y, *z)),
+        _ => Err(PyValueError::new_err(format!("{name} must be 3 values"))),
+    }
 }
 
 /// Rotations from a (V, 3, 3) C-contiguous array (row-major matrices).

@@ -12,6 +12,7 @@ use pyo3::types::PyDict;
 
 use super::arrays::{
     indices_into, matrix_array, points_array, rotations_array, rotations_from, triples,
+    vector3_from,
 };
 use super::{guarded, InvalidCloudError, InvalidModelError};
 use crate::index::{ModelIndex, Pose};
@@ -32,6 +33,7 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(view_rotation, m)?)?;
     m.add_function(wrap_pyfunction!(top_k, m)?)?;
     m.add_function(wrap_pyfunction!(distinct_rotations, m)?)?;
+    m.add_function(wrap_pyfunction!(usable_icp, m)?)?;
     m.add_function(wrap_pyfunction!(box_sides, m)?)?;
     m.add_class::<PySegmentSettings>()?;
     m.add_function(wrap_pyfunction!(segment_object, m)?)?;
@@ -190,6 +192,44 @@ fn view_rotation<'py>(
         }
         let r = views::view_rotation(&nalgebra::Vector3::new(d[0], d[1], d[2]));
         Ok(matrix_array(py, &r))
+    })
+}
+
+/// (H,) bool: which ICP results (`inliers` (H,), `rmse` (H,),
+/// `translations` (H, 3) camera frame, metres) are usable, against the
+/// observed `centroid` (3,): see the core's `hypotheses::usable_icp`.
+#[pyfunction]
+fn usable_icp<'py>(
+    py: Python<'py>,
+    inliers: PyReadonlyArray1<'py, u32>,
+    rmse: PyReadonlyArray1<'py, f64>,
+    translations: PyReadonlyArray2<'py, f64>,
+    centroid: PyReadonlyArray1<'py, f64>,
+    min_icp_inliers: usize,
+    max_centre_offset: f64,
+) -> PyResult<Bound<'py, PyArray1<bool>>> {
+    guarded(|| {
+        let t = triples(&translations, "translations").map_err(PyValueError::new_err)?;
+        let (inliers, rmse) = (inliers.as_slice()?, rmse.as_slice()?);
+        if inliers.len() != t.len() || rmse.len() != t.len() {
+            return Err(PyValueError::new_err(
+                "one inlier count, RMSE and translation per ICP result",
+            ));
+        }
+        let centroid = vector3_from(&centroid, "centroid")?;
+        let usable = (0..t.len())
+            .map(|h| {
+                hypotheses::usable_icp(
+                    inliers[h] as usize,
+                    rmse[h],
+                    &nalgebra::Vector3::from(t[h]),
+                    &centroid,
+                    min_icp_inliers,
+                    max_centre_offset,
+                )
+            })
+            .collect();
+        Ok(PyArray1::from_vec(py, usable))
     })
 }
 

@@ -9,7 +9,9 @@ use pyo3::exceptions::{PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex};
 
-use super::arrays::{indices_into, poses_from, rotations_array, translations_array, triples};
+use super::arrays::{
+    indices_into, poses_from, rotations_array, translations_array, triples, vector3_from,
+};
 use super::functions::{scene_of_frame, track_frame_of};
 use super::model::PyStandardModel;
 use super::{guarded, InvalidCloudError};
@@ -355,10 +357,7 @@ impl PyModelIndex {
             let poses = poses_from(&rotations, &translations)?;
             let inliers: Vec<usize> = inliers.as_array().iter().map(|&i| i as usize).collect();
             let rmse = rmse.as_slice()?;
-            let centroid = match centroid.as_slice()? {
-                [x, y, z] => nalgebra::Vector3::new(*x, *y, *z),
-                _ => return Err(PyValueError::new_err("centroid must be 3 values")),
-            };
+            let centroid = vector3_from(&centroid, "centroid")?;
             if inliers.len() != poses.len() || rmse.len() != poses.len() {
                 return Err(PyValueError::new_err(
                     "one inlier count and RMSE per hypothesis",
