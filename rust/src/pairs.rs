@@ -119,7 +119,7 @@ impl PairTable {
                     let (pts, nrm, to_x) = (&pts, &nrm, &to_x);
                     (0..m).filter(move |&j| j != i).filter_map(move |j| {
                         feature_key(&pts[i], &nrm[i], &pts[j], &nrm[j], distance_step).map(|key| {
-                            let turn = turn_bin(angle_about_x(&to_x[i], &pts[i], &pts[j]));
+                            let turn = turn_bin_about_x(&to_x[i], &pts[i], &pts[j]);
                             (key, i as u16, turn)
                         })
                     })
@@ -166,24 +166,58 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
     }
     let picks = farthest_point_sample(cloud, settings.scene_points.min(cloud.len()));
     let (scene, normals) = oriented_points(cloud, &picks, settings.normal_neighbours);
+    // A reference's cell gets a vote at most once per model pair of each of
+    // its scene pairs (at most MAX_PAIRS_PER_BIN a pair's bin).
+    let voted = if (scene.len() - 1) * MAX_PAIRS_PER_BIN <= u16::MAX as usize {
+        vote::<u16>(table, &scene, &normals, settings)
+    } else {
+        vote::<u32>(table, &scene, &normals, settings)
+    };
+    cluster(voted, settings, table.distance_step * DISTANCE_BINS as f64)
+}
+
+/// A count of votes in the accumulator: `u16` when no cell can pass 65,535
+/// (half the memory of `u32`, so a reference point's accumulator stays in
+/// the core's first-level cache).
+trait Votes: Copy + Ord + Default + Send + std::ops::AddAssign + Into<f64> {
+    const ONE: Self;
+}
+
+impl Votes for u16 {
+    const ONE: Self = 1;
+}
+
+impl Votes for u32 {
+    const ONE: Self = 1;
+}
+
+/// Each reference point's best poses: its pairs with the other `scene`
+/// points (with `normals`) vote in the `table` for a model point and a
+/// turn about its normal, counted in `V`.
+fn vote<V: Votes>(
+    table: &PairTable,
+    scene: &[Vector3<f64>],
+    normals: &[Vector3<f64>],
+    settings: &PairSettings,
+) -> Vec<VotedPose> {
     let m = table.points.len();
     let max_distance = table.distance_step * DISTANCE_BINS as f64;
     let references: Vec<usize> = (0..scene.len())
         .step_by(settings.reference_stride.max(1))
         .collect();
     // Reference points vote on their own: in parallel, in order.
-    let voted: Vec<VotedPose> = threads::install(|| {
+    threads::install(|| {
         references
             .par_iter()
             .map_init(
                 || {
                     (
-                        vec![0u32; m * ROTATION_BINS],
+                        vec![V::default(); m * ROTATION_BINS],
                         Vec::with_capacity(scene.len()),
                     )
                 },
                 |(accumulator, runs), &r| {
-                    accumulator.fill(0);
+                    accumulator.fill(V::default());
                     let to_x = rotation_to_x(&normals[r]);
                     // Where each scene pair's model pairs lie in the table,
                     // all read before any votes: the table's cache misses
@@ -204,8 +238,7 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
                         };
                         let (first, end) =
                             (table.starts[key as usize], table.starts[key as usize + 1]);
-                        let scene_turn =
-                            turn_bin(angle_about_x(&to_x, &scene[r], &scene[i])) as usize;
+                        let scene_turn = turn_bin_about_x(&to_x, &scene[r], &scene[i]) as usize;
                         runs.push((first, end, scene_turn));
                     }
                     for &(first, end, scene_turn) in runs.iter() {
@@ -216,7 +249,7 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
                             if bin >= ROTATION_BINS {
                                 bin -= ROTATION_BINS;
                             }
-                            accumulator[model_ref as usize * ROTATION_BINS + bin] += 1;
+                            accumulator[model_ref as usize * ROTATION_BINS + bin] += V::ONE;
                         }
                     }
                     best_cells(accumulator, settings.peaks_per_reference)
@@ -234,7 +267,7 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
                                     rotation: *rotation.matrix(),
                                     translation,
                                 },
-                                votes: votes as f64,
+                                votes: votes.into(),
                             }
                         })
                         .collect::<Vec<_>>()
@@ -242,15 +275,14 @@ pub fn pair_poses(table: &PairTable, cloud: &[Point3], settings: &PairSettings) 
             )
             .flatten()
             .collect()
-    });
-    cluster(voted, settings, table.distance_step * DISTANCE_BINS as f64)
+    })
 }
 
 /// The accumulator's `count` best cells with at least one vote, (cell,
 /// votes), best first (the lowest cell on ties). A pass for the maximum
 /// and a search for its place per cell, both in vector lanes (AVX2 where
-/// present: 8 lanes of u32 maxima), unlike a running top-k.
-fn best_cells(accumulator: &mut [u32], count: usize) -> Vec<(usize, u32)> {
+/// present: 8 lanes of u32 maxima, 16 of u16), unlike a running top-k.
+fn best_cells<V: Votes>(accumulator: &mut [V], count: usize) -> Vec<(usize, V)> {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: AVX2 is present (checked above).
@@ -262,21 +294,21 @@ fn best_cells(accumulator: &mut [u32], count: usize) -> Vec<(usize, u32)> {
 /// [`best_cells`] compiled for AVX2; the same comparisons, so the same cells.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn best_cells_avx2(accumulator: &mut [u32], count: usize) -> Vec<(usize, u32)> {
+fn best_cells_avx2<V: Votes>(accumulator: &mut [V], count: usize) -> Vec<(usize, V)> {
     best_cells_in(accumulator, count)
 }
 
 #[inline(always)]
-fn best_cells_in(accumulator: &mut [u32], count: usize) -> Vec<(usize, u32)> {
+fn best_cells_in<V: Votes>(accumulator: &mut [V], count: usize) -> Vec<(usize, V)> {
     let mut best = Vec::with_capacity(count);
     for _ in 0..count {
-        let votes = accumulator.iter().copied().max().unwrap_or(0);
-        if votes == 0 {
+        let votes = accumulator.iter().copied().max().unwrap_or_default();
+        if votes == V::default() {
             break;
         }
         let cell = first_of(accumulator, votes);
         best.push((cell, votes));
-        accumulator[cell] = 0;
+        accumulator[cell] = V::default();
     }
     best
 }
@@ -284,7 +316,7 @@ fn best_cells_in(accumulator: &mut [u32], count: usize) -> Vec<(usize, u32)> {
 /// The first place of `value` in `cells`, which holds it: a block of cells
 /// is tested at once, without a branch per cell, before the cell is sought.
 #[inline(always)]
-fn first_of(cells: &[u32], value: u32) -> usize {
+fn first_of<V: Votes>(cells: &[V], value: V) -> usize {
     const BLOCK: usize = 32;
     let mut start = 0;
     for block in cells.chunks_exact(BLOCK) {
@@ -406,13 +438,59 @@ fn feature_key(
 
 /// The bin (of [`ROTATION_BINS`] over 360°, centred on multiples of the
 /// bin width) of an angle in radians.
+#[cfg(test)]
 fn turn_bin(angle: f64) -> u16 {
     let width = std::f64::consts::TAU / ROTATION_BINS as f64;
     ((angle / width).round() as i64).rem_euclid(ROTATION_BINS as i64) as u16
 }
 
+/// The bin edges of the half turn from +y to −y through +z: cosines and
+/// sines of (k + ½) bin widths, k = 0..[`ROTATION_BINS`] / 2.
+static TURN_EDGES: LazyLock<[[f64; ROTATION_BINS / 2]; 2]> = LazyLock::new(|| {
+    let edge = |k: usize| (k as f64 + 0.5) * std::f64::consts::TAU / ROTATION_BINS as f64;
+    [
+        std::array::from_fn(|k| edge(k).cos()),
+        std::array::from_fn(|k| edge(k).sin()),
+    ]
+});
+
+/// The turn bin of `q` about the x axis once `p` is moved to the origin and
+/// its normal onto +x by `to_x`: `turn_bin(angle_about_x(to_x, p, q))`,
+/// from the bin edges the direction lies past instead of an arctangent
+/// (the same bin but within ~1e-15 rad of an edge).
+fn turn_bin_about_x(to_x: &Rotation3<f64>, p: &Vector3<f64>, q: &Vector3<f64>) -> u16 {
+    let v = to_x * (q - p);
+    turn_bin_of(v.y, v.z)
+}
+
+/// The bin of the direction (y, z) in the y–z plane, angles from +y
+/// towards +z; −0 and +0 as `f64::atan2` takes them.
+fn turn_bin_of(y: f64, z: f64) -> u16 {
+    if y == 0.0 && z == 0.0 {
+        // atan2(±0, +0) = ±0, atan2(±0, −0) = ±π.
+        return if y.is_sign_negative() {
+            (ROTATION_BINS / 2) as u16
+        } else {
+            0
+        };
+    }
+    // Edges at or before the direction on its half turn (z's side; z = ±0
+    // with y < 0 is the half turn itself, as atan2's ±π).
+    let (across, [cos, sin]) = (z.abs(), &*TURN_EDGES);
+    let mut past = 0;
+    for k in 0..ROTATION_BINS / 2 {
+        past += usize::from(cos[k] * across >= sin[k] * y);
+    }
+    if z >= 0.0 || past == 0 {
+        past as u16
+    } else {
+        (ROTATION_BINS - past) as u16
+    }
+}
+
 /// Angle (radians, −π..π) of `q` about the x axis once `p` is moved to the
 /// origin and its normal onto +x by `to_x`.
+#[cfg(test)]
 fn angle_about_x(to_x: &Rotation3<f64>, p: &Vector3<f64>, q: &Vector3<f64>) -> f64 {
     let v = to_x * (q - p);
     v.z.atan2(v.y)
@@ -533,7 +611,64 @@ mod tests {
                 );
                 let mut accumulator = cells.clone();
                 assert_eq!(best_cells_in(&mut accumulator, count), expected);
+                let mut narrow: Vec<u16> = cells.iter().map(|&v| v as u16).collect();
+                let expected_narrow: Vec<(usize, u16)> =
+                    expected.iter().map(|&(c, v)| (c, v as u16)).collect();
+                assert_eq!(best_cells(&mut narrow, count), expected_narrow);
             }
+        }
+    }
+
+    #[test]
+    fn turn_bins_from_the_edges_are_the_arctangents_bins() {
+        let mut rng = SplitMix64::new(11);
+        let mut directions: Vec<(f64, f64)> = (0..100_000)
+            .map(|_| {
+                let angle = (rng.next_u64() as f64 / u64::MAX as f64 - 0.5) * std::f64::consts::TAU;
+                let length = 1e-3 + rng.next_u64() as f64 / u64::MAX as f64;
+                (length * angle.cos(), length * angle.sin())
+            })
+            .collect();
+        // The axes and signed zeros, as atan2 takes them.
+        for y in [0.0, -0.0, 1.0, -1.0] {
+            for z in [0.0, -0.0, 1.0, -1.0] {
+                directions.push((y, z));
+            }
+        }
+        // Just either side of every bin edge.
+        for k in 0..ROTATION_BINS {
+            let edge = (k as f64 + 0.5) * std::f64::consts::TAU / ROTATION_BINS as f64;
+            for off in [-1e-9, 1e-9] {
+                directions.push(((edge + off).cos(), (edge + off).sin()));
+            }
+        }
+        for (y, z) in directions {
+            assert_eq!(turn_bin_of(y, z), turn_bin(z.atan2(y)), "({y}, {z})");
+        }
+    }
+
+    #[test]
+    fn narrow_and_wide_vote_counts_vote_alike() {
+        let truth = pose(
+            Vector3::new(0.2, 1.0, -0.4),
+            0.9,
+            Vector3::new(0.0, 0.0, 0.6),
+        );
+        let cloud = view(&truth, f64::INFINITY);
+        let settings = PairSettings::default();
+        let picks = farthest_point_sample(&cloud, settings.scene_points.min(cloud.len()));
+        let (scene, normals) = oriented_points(&cloud, &picks, settings.normal_neighbours);
+        let (narrow, wide) = (
+            vote::<u16>(&table(), &scene, &normals, &settings),
+            vote::<u32>(&table(), &scene, &normals, &settings),
+        );
+        assert!(!narrow.is_empty());
+        assert_eq!(narrow.len(), wide.len());
+        for (a, b) in narrow.iter().zip(&wide) {
+            assert_eq!(
+                (a.pose.rotation, a.pose.translation, a.votes),
+                (b.pose.rotation, b.pose.translation, b.votes)
+            );
         }
     }
 
