@@ -185,13 +185,10 @@ mod x86 {
             _mm512_set1_ps(c[1]),
             _mm512_set1_ps(c[2]),
         );
-        let mut best = _mm512_set1_ps(f32::NEG_INFINITY);
-        let mut best_at = _mm512_setzero_si512();
-        let mut index = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-        let step = _mm512_set1_epi32(LANES as i32);
         let (px, py, pz, pd) = (xs.as_ptr(), ys.as_ptr(), zs.as_ptr(), min_sq.as_mut_ptr());
-        let mut i = 0;
-        while i < xs.len() {
+        // The 16 points from `i` lowered, and the lanes' running largest
+        // distance and its index `at` updated (the first index on ties).
+        let lower = |i: usize, best: &mut __m512, best_at: &mut __m512i, at: __m512i| {
             let dx = _mm512_sub_ps(_mm512_loadu_ps(px.add(i)), cx);
             let dy = _mm512_sub_ps(_mm512_loadu_ps(py.add(i)), cy);
             let dz = _mm512_sub_ps(_mm512_loadu_ps(pz.add(i)), cz);
@@ -201,12 +198,37 @@ mod x86 {
             );
             let lowered = _mm512_min_ps(d, _mm512_loadu_ps(pd.add(i)));
             _mm512_storeu_ps(pd.add(i), lowered);
-            let better = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lowered, best);
-            best = _mm512_mask_blend_ps(better, best, lowered);
-            best_at = _mm512_mask_blend_epi32(better, best_at, index);
-            index = _mm512_add_epi32(index, step);
-            i += LANES;
+            let better = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lowered, *best);
+            *best = _mm512_mask_blend_ps(better, *best, lowered);
+            *best_at = _mm512_mask_blend_epi32(better, *best_at, at);
+        };
+        // Two running maxima, over alternate groups of 16 points, so that
+        // one group's comparison need not wait for the previous one's.
+        let mut best = [_mm512_set1_ps(f32::NEG_INFINITY); 2];
+        let mut best_at = [_mm512_setzero_si512(); 2];
+        let mut index = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        let (step, pair) = (_mm512_set1_epi32(LANES as i32), 2 * LANES);
+        let mut i = 0;
+        while i + pair <= xs.len() {
+            let [b0, b1] = &mut best;
+            let [a0, a1] = &mut best_at;
+            lower(i, b0, a0, index);
+            lower(i + LANES, b1, a1, _mm512_add_epi32(index, step));
+            index = _mm512_add_epi32(index, _mm512_add_epi32(step, step));
+            i += pair;
         }
+        if i < xs.len() {
+            let [b0, _] = &mut best;
+            let [a0, _] = &mut best_at;
+            lower(i, b0, a0, index);
+        }
+        // Per lane, the larger of the two, the lower index on ties: the
+        // first largest, as one running maximum over all groups gives.
+        let second = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(best[1], best[0])
+            | (_mm512_cmp_ps_mask::<_CMP_EQ_OQ>(best[1], best[0])
+                & _mm512_cmplt_epu32_mask(best_at[1], best_at[0]));
+        let best = _mm512_mask_blend_ps(second, best[0], best[1]);
+        let best_at = _mm512_mask_blend_epi32(second, best_at[0], best_at[1]);
         let mut values = [0.0f32; LANES];
         let mut at = [0u32; LANES];
         _mm512_storeu_ps(values.as_mut_ptr(), best);
@@ -314,7 +336,18 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn vector_kernels_match_the_portable_kernel() {
-        let cloud = random_cloud(1003, 4);
+        // Random points (an odd number of groups of 16), and a lattice whose
+        // many equal distances tie within lanes and between them.
+        let lattice: Vec<Point3> = (0..1024)
+            .map(|i| [(i % 8) as f32, ((i / 8) % 8) as f32, (i / 64) as f32])
+            .collect();
+        for cloud in [random_cloud(1003, 4), lattice] {
+            kernels_match_on(&cloud);
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    fn kernels_match_on(cloud: &[Point3]) {
         let n = cloud.len().div_ceil(LANES) * LANES;
         let col = |k: usize| {
             let mut v: Vec<f32> = cloud.iter().map(|p| p[k]).collect();
@@ -325,7 +358,12 @@ mod tests {
         let mut a = vec![f32::NEG_INFINITY; n];
         a[..cloud.len()].fill(f32::INFINITY);
         let (mut b, mut c, mut d) = (a.clone(), a.clone(), a.clone());
-        for centre in [[0.5, 0.5, 0.5], [0.0, 1.0, 0.2], [0.9, 0.1, 0.4]] {
+        for centre in [
+            [0.5, 0.5, 0.5],
+            [0.0, 1.0, 0.2],
+            [0.9, 0.1, 0.4],
+            [3.5, 3.5, 7.5],
+        ] {
             let portable = update_lanes(&xs, &ys, &zs, &mut a, centre);
             let sse2 = unsafe { x86::update_lanes_sse2(&xs, &ys, &zs, &mut b, centre) };
             assert_eq!(portable, sse2);

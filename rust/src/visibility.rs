@@ -24,12 +24,14 @@ pub fn visible_mask(points: &[Point3], normals: &[Point3], spacing: f32) -> Vec<
 
     // Each front-facing point splats its depth over its cell and the 8 around
     // it, so a surface leaves no holes for the one behind to show through.
-    let mut depth = vec![f32::INFINITY; grid.width * grid.height];
+    // The buffer has a border of one cell all round, so every splat lies
+    // whole inside it: cell (x, y) is `depth[(y + 1) * row + x + 1]`.
+    let row = grid.width + 2;
+    let mut depth = vec![f32::INFINITY; row * (grid.height + 2)];
     for (p, _) in points.iter().zip(&front).filter(|(_, f)| **f) {
         let (cx, cy) = grid.cell(p);
-        for y in cy.saturating_sub(1)..=(cy + 1).min(grid.height - 1) {
-            for x in cx.saturating_sub(1)..=(cx + 1).min(grid.width - 1) {
-                let d = &mut depth[y * grid.width + x];
+        for y in cy..cy + 3 {
+            for d in &mut depth[y * row + cx..y * row + cx + 3] {
                 *d = d.min(p[2]);
             }
         }
@@ -49,7 +51,7 @@ pub fn visible_mask(points: &[Point3], normals: &[Point3], spacing: f32) -> Vec<
             let slope = ((n[0] * n[0] + n[1] * n[1]).sqrt() / -n[2]).min(MAX_DEPTH_SLOPE);
             let tolerance = 0.5 * spacing + 2.0 * grid.cell_size * slope;
             let (cx, cy) = grid.cell(p);
-            p[2] <= depth[cy * grid.width + cx] + tolerance
+            p[2] <= depth[(cy + 1) * row + cx + 1] + tolerance
         })
         .collect()
 }
