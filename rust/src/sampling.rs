@@ -16,6 +16,27 @@ pub fn farthest_point_sample(points: &[Point3], m: usize) -> Vec<u32> {
     if n == 0 || m == 0 {
         return Vec::new();
     }
+    let take = m.min(n);
+    #[cfg(target_arch = "x86_64")]
+    let mut chosen = if n >= blocked::MIN_POINTS && std::arch::is_x86_feature_detected!("avx512f") {
+        // SAFETY: AVX-512F is present (checked above).
+        unsafe { blocked::farthest_point_sample(points, take) }
+    } else {
+        every_point_each_pick(points, take)
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let mut chosen = every_point_each_pick(points, take);
+    chosen.reserve(m - take);
+    for k in take..m {
+        chosen.push(chosen[k % take]);
+    }
+    chosen
+}
+
+/// The first `take` (1 to the number of `points`) of [`farthest_point_sample`]'s
+/// picks, by a pass over every point for each pick.
+fn every_point_each_pick(points: &[Point3], take: usize) -> Vec<u32> {
+    let n = points.len();
     // Structure-of-arrays padded to whole lanes. Padding slots carry a
     // distance of −∞, so they are never the farthest point.
     let padded = n.div_ceil(LANES) * LANES;
@@ -25,20 +46,14 @@ pub fn farthest_point_sample(points: &[Point3], m: usize) -> Vec<u32> {
     for (i, p) in points.iter().enumerate() {
         (xs[i], ys[i], zs[i]) = (p[0], p[1], p[2]);
     }
-    let inv_n = 1.0 / n as f32;
-    let centroid = [
-        xs[..n].iter().sum::<f32>() * inv_n,
-        ys[..n].iter().sum::<f32>() * inv_n,
-        zs[..n].iter().sum::<f32>() * inv_n,
-    ];
+    let centroid = centroid(points);
     let mut min_sq = vec![f32::NEG_INFINITY; padded];
     min_sq[..n].fill(f32::INFINITY);
 
     // The first pick is the farthest point from the centroid: the same
     // update-and-argmax step, on a copy whose distances are all still ∞.
     let mut scratch = min_sq.clone();
-    let take = m.min(n);
-    let mut chosen = Vec::with_capacity(m);
+    let mut chosen = Vec::with_capacity(take);
     let mut current = update_and_argmax(&xs, &ys, &zs, &mut scratch, centroid);
     chosen.push(current as u32);
     for _ in 1..take {
@@ -46,10 +61,14 @@ pub fn farthest_point_sample(points: &[Point3], m: usize) -> Vec<u32> {
         current = update_and_argmax(&xs, &ys, &zs, &mut min_sq, c);
         chosen.push(current as u32);
     }
-    for k in take..m {
-        chosen.push(chosen[k % take]);
-    }
     chosen
+}
+
+/// The centroid of `points` as [`farthest_point_sample`] takes it: f32
+/// sums in input order (the first pick is the point farthest from it).
+fn centroid(points: &[Point3]) -> Point3 {
+    let inv_n = 1.0 / points.len() as f32;
+    std::array::from_fn(|a| points.iter().map(|p| p[a]).sum::<f32>() * inv_n)
 }
 
 /// Lanes processed together (and the padding of the point arrays): one
@@ -291,6 +310,251 @@ mod x86 {
     }
 }
 
+/// Farthest-point sampling over blocks of nearby points, with AVX-512: the
+/// same picks as the passes over every point above, bit for bit. The
+/// points are put in Morton order and cut into blocks of [`BLOCK`]. A pick
+/// whose squared distance to a block's bounding box is, with room for
+/// rounding, at least the largest distance-to-chosen-set in the block
+/// lowers none of them, so the block is skipped: most picks lie near a
+/// few blocks. Ties still go to the lowest input index.
+#[cfg(target_arch = "x86_64")]
+mod blocked {
+    use super::{centroid, LANES};
+    use crate::index::bounds;
+    use crate::Point3;
+    use std::arch::x86_64::*;
+
+    /// Points of a block: four AVX-512 registers.
+    const BLOCK: usize = 4 * LANES;
+
+    /// Smaller clouds take the passes over every point: ordering them
+    /// costs more than skipping saves.
+    pub(super) const MIN_POINTS: usize = 4 * BLOCK;
+
+    /// A bounding box's squared distance to a pick, shrunk by this share:
+    /// far more than the rounding of an f32 squared distance.
+    const ROUNDING: f32 = 1e-5;
+
+    /// The first `take` (1 to the number of `points`) of
+    /// [`super::farthest_point_sample`]'s picks.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn farthest_point_sample(points: &[Point3], take: usize) -> Vec<u32> {
+        let n = points.len();
+        let blocks = n.div_ceil(BLOCK);
+        let padded = blocks * BLOCK;
+        // Structure of arrays in Morton order, the last block padded with
+        // slots whose distance is −∞ (never the farthest), and each slot's
+        // input index.
+        let (mut xs, mut ys, mut zs) = (
+            vec![0.0f32; padded],
+            vec![0.0f32; padded],
+            vec![0.0f32; padded],
+        );
+        let mut ids = vec![u32::MAX; padded];
+        // The blocks' bounding boxes, axis by axis, padded to whole
+        // registers with empty boxes (infinitely far from any pick).
+        let boxed = blocks.div_ceil(LANES) * LANES;
+        let mut lo = [(); 3].map(|_| vec![f32::INFINITY; boxed]);
+        let mut hi = [(); 3].map(|_| vec![f32::NEG_INFINITY; boxed]);
+        for (k, i) in morton_order(points).into_iter().enumerate() {
+            let p = points[i as usize];
+            (xs[k], ys[k], zs[k], ids[k]) = (p[0], p[1], p[2], i);
+            for a in 0..3 {
+                lo[a][k / BLOCK] = lo[a][k / BLOCK].min(p[a]);
+                hi[a][k / BLOCK] = hi[a][k / BLOCK].max(p[a]);
+            }
+        }
+        let slots = Slots {
+            xs: &xs,
+            ys: &ys,
+            zs: &zs,
+            ids: &ids,
+        };
+        let mut min_sq = vec![f32::NEG_INFINITY; padded];
+        min_sq[..n].fill(f32::INFINITY);
+        // Each block's largest distance (padding: −∞, never the farthest).
+        let mut best = vec![f32::NEG_INFINITY; boxed];
+
+        // The first pick is the farthest point from the centroid: every
+        // block lowered on a copy whose distances are all still ∞.
+        let mut scratch = min_sq.clone();
+        let c = centroid(points);
+        for (b, best) in best[..blocks].iter_mut().enumerate() {
+            *best = lower_block(&slots, &mut scratch, b, c);
+        }
+        let mut chosen = Vec::with_capacity(take);
+        chosen.push(farthest(&slots, &scratch, &best));
+        best[..blocks].fill(f32::INFINITY);
+        for _ in 1..take {
+            let c = points[chosen[chosen.len() - 1] as usize];
+            for group in 0..boxed / LANES {
+                let mut near = near_blocks(&lo, &hi, &best, group * LANES, c);
+                while near != 0 {
+                    let b = group * LANES + near.trailing_zeros() as usize;
+                    near &= near - 1;
+                    best[b] = lower_block(&slots, &mut min_sq, b, c);
+                }
+            }
+            chosen.push(farthest(&slots, &min_sq, &best));
+        }
+        chosen
+    }
+
+    /// The points' coordinates and input indices, slot by slot.
+    struct Slots<'a> {
+        xs: &'a [f32],
+        ys: &'a [f32],
+        zs: &'a [f32],
+        ids: &'a [u32],
+    }
+
+    /// A bit for each of the [`LANES`] blocks from `first` whose box
+    /// (`lo`..`hi`, by axis) a point within their largest distance `best`
+    /// (squared metres) of `c` may lie in; a clear bit: every point of the
+    /// block is surely farther, in f32 arithmetic, so none is lowered.
+    #[target_feature(enable = "avx512f")]
+    unsafe fn near_blocks(
+        lo: &[Vec<f32>; 3],
+        hi: &[Vec<f32>; 3],
+        best: &[f32],
+        first: usize,
+        c: Point3,
+    ) -> u16 {
+        let zero = _mm512_setzero_ps();
+        let mut squared = zero;
+        for a in 0..3 {
+            let v = _mm512_set1_ps(c[a]);
+            let below = _mm512_sub_ps(_mm512_loadu_ps(lo[a].as_ptr().add(first)), v);
+            let above = _mm512_sub_ps(v, _mm512_loadu_ps(hi[a].as_ptr().add(first)));
+            // maxps returns its second operand when either is NaN: a NaN gap is 0.
+            let gap = _mm512_max_ps(_mm512_max_ps(below, above), zero);
+            squared = _mm512_add_ps(squared, _mm512_mul_ps(gap, gap));
+        }
+        let shrunk = _mm512_mul_ps(squared, _mm512_set1_ps(1.0 - ROUNDING));
+        _mm512_cmp_ps_mask::<_CMP_LT_OQ>(shrunk, _mm512_loadu_ps(best.as_ptr().add(first)))
+    }
+
+    /// The input index of the point with the largest distance `min_sq`
+    /// (the lowest index on ties), from the blocks' largest ones `best`:
+    /// only the blocks holding the largest are read point by point.
+    #[target_feature(enable = "avx512f")]
+    unsafe fn farthest(slots: &Slots, min_sq: &[f32], best: &[f32]) -> u32 {
+        let mut top = _mm512_set1_ps(f32::NEG_INFINITY);
+        for i in (0..best.len()).step_by(LANES) {
+            top = _mm512_max_ps(top, _mm512_loadu_ps(best.as_ptr().add(i)));
+        }
+        let top = _mm512_set1_ps(_mm512_reduce_max_ps(top));
+        let mut at = _mm512_set1_epi32(-1);
+        for group in (0..best.len()).step_by(LANES) {
+            let mut holding =
+                _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(_mm512_loadu_ps(best.as_ptr().add(group)), top);
+            while holding != 0 {
+                let b = group + holding.trailing_zeros() as usize;
+                holding &= holding - 1;
+                for i in (b * BLOCK..(b + 1) * BLOCK).step_by(LANES) {
+                    let there = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(
+                        _mm512_loadu_ps(min_sq.as_ptr().add(i)),
+                        top,
+                    );
+                    let ids = _mm512_loadu_si512(slots.ids.as_ptr().add(i) as *const __m512i);
+                    at = _mm512_mask_min_epu32(at, there, at, ids);
+                }
+            }
+        }
+        _mm512_reduce_min_epu32(at)
+    }
+
+    /// Lowers the distances of block `b`'s points with their distance to
+    /// `c`, as the passes over every point do (the same operations), and
+    /// returns the largest.
+    #[target_feature(enable = "avx512f")]
+    unsafe fn lower_block(slots: &Slots, min_sq: &mut [f32], b: usize, c: Point3) -> f32 {
+        let (cx, cy, cz) = (
+            _mm512_set1_ps(c[0]),
+            _mm512_set1_ps(c[1]),
+            _mm512_set1_ps(c[2]),
+        );
+        let mut best = _mm512_set1_ps(f32::NEG_INFINITY);
+        let (px, py, pz, pd) = (
+            slots.xs.as_ptr(),
+            slots.ys.as_ptr(),
+            slots.zs.as_ptr(),
+            min_sq.as_mut_ptr(),
+        );
+        for i in (b * BLOCK..(b + 1) * BLOCK).step_by(LANES) {
+            let dx = _mm512_sub_ps(_mm512_loadu_ps(px.add(i)), cx);
+            let dy = _mm512_sub_ps(_mm512_loadu_ps(py.add(i)), cy);
+            let dz = _mm512_sub_ps(_mm512_loadu_ps(pz.add(i)), cz);
+            let d = _mm512_add_ps(
+                _mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)),
+                _mm512_mul_ps(dz, dz),
+            );
+            let lowered = _mm512_min_ps(d, _mm512_loadu_ps(pd.add(i)));
+            _mm512_storeu_ps(pd.add(i), lowered);
+            best = _mm512_max_ps(best, lowered);
+        }
+        _mm512_reduce_max_ps(best)
+    }
+
+    /// Bits of each coordinate in a Morton code: 32 cells an axis, about
+    /// as many as a block of a few thousand points needs.
+    const BITS: u32 = 5;
+
+    /// Input indices of `points` in Morton order over their bounding box
+    /// ([`BITS`] bits an axis; points with the same code in input order),
+    /// sorted by two passes of a counting sort.
+    #[inline(always)]
+    fn morton_order(points: &[Point3]) -> Vec<u32> {
+        let (lo, hi) = bounds(points);
+        let cells = ((1 << BITS) - 1) as f32;
+        let scale: [f32; 3] = std::array::from_fn(|a| {
+            if hi[a] > lo[a] {
+                cells / (hi[a] - lo[a])
+            } else {
+                0.0
+            }
+        });
+        // A NaN coordinate is cell 0 (max returns the other operand).
+        let cell =
+            |p: &Point3, a: usize| spread(((p[a] - lo[a]) * scale[a]).max(0.0).min(cells) as u32);
+        let codes: Vec<u32> = points
+            .iter()
+            .map(|p| cell(p, 0) | cell(p, 1) << 1 | cell(p, 2) << 2)
+            .collect();
+        let mut order: Vec<u32> = (0..points.len() as u32).collect();
+        let mut sorted = vec![0u32; points.len()];
+        const DIGIT: u32 = (3 * BITS).div_ceil(2);
+        for shift in [0, DIGIT] {
+            let digit = |i: u32| ((codes[i as usize] >> shift) & ((1 << DIGIT) - 1)) as usize;
+            let mut starts = [0usize; 1 << DIGIT];
+            for &i in &order {
+                starts[digit(i)] += 1;
+            }
+            let mut total = 0;
+            for start in starts.iter_mut() {
+                (*start, total) = (total, total + *start);
+            }
+            for &i in &order {
+                sorted[starts[digit(i)]] = i;
+                starts[digit(i)] += 1;
+            }
+            std::mem::swap(&mut order, &mut sorted);
+        }
+        order
+    }
+
+    /// The low [`BITS`] bits of `v`, two zero bits after each.
+    #[inline(always)]
+    fn spread(v: u32) -> u32 {
+        const _: () = assert!(BITS <= 10, "the shifts below spread 10 bits");
+        let mut x = v & ((1 << BITS) - 1);
+        x = (x | (x << 16)) & 0x0300_00ff;
+        x = (x | (x << 8)) & 0x0300_f00f;
+        x = (x | (x << 4)) & 0x030c_30c3;
+        (x | (x << 2)) & 0x0924_9249
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -377,6 +641,44 @@ mod tests {
                 let avx512 = unsafe { x86::update_lanes_avx512(&xs, &ys, &zs, &mut d, centre) };
                 assert_eq!(portable, avx512);
                 assert_eq!(a, d);
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn blocks_give_the_picks_of_passes_over_every_point() {
+        if !std::arch::is_x86_feature_detected!("avx512f") {
+            return;
+        }
+        // Random points, a lattice full of equal distances, duplicates,
+        // a flat patch, and points with NaN and infinite coordinates.
+        let lattice: Vec<Point3> = (0..1024)
+            .map(|i| [(i % 8) as f32, ((i / 8) % 8) as f32, (i / 64) as f32])
+            .collect();
+        let doubled: Vec<Point3> = random_cloud(300, 7)
+            .into_iter()
+            .flat_map(|p| [p, p])
+            .collect();
+        let flat: Vec<Point3> = random_cloud(700, 8)
+            .into_iter()
+            .map(|p| [p[0], p[1], 0.5])
+            .collect();
+        let mut odd = random_cloud(500, 9);
+        odd[17] = [f32::NAN, 0.0, 0.0];
+        odd[300] = [0.0, f32::INFINITY, 0.0];
+        for cloud in [
+            random_cloud(1003, 4),
+            random_cloud(2048, 5),
+            lattice,
+            doubled,
+            flat,
+            odd,
+        ] {
+            for take in [1, 64, 512, cloud.len()] {
+                let blocked = unsafe { blocked::farthest_point_sample(&cloud, take) };
+                let every = every_point_each_pick(&cloud, take);
+                assert_eq!(blocked, every, "{} points, {take} picks", cloud.len());
             }
         }
     }
