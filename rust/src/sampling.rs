@@ -18,7 +18,8 @@ pub fn farthest_point_sample(points: &[Point3], m: usize) -> Vec<u32> {
     }
     let take = m.min(n);
     #[cfg(target_arch = "x86_64")]
-    let mut chosen = if n >= blocked::MIN_POINTS && std::arch::is_x86_feature_detected!("avx512f") {
+    let mut chosen = if take >= blocked::MIN_PICKS && std::arch::is_x86_feature_detected!("avx512f")
+    {
         // SAFETY: AVX-512F is present (checked above).
         unsafe { blocked::farthest_point_sample(points, take) }
     } else {
@@ -327,9 +328,9 @@ mod blocked {
     /// Points of a block: four AVX-512 registers.
     const BLOCK: usize = 4 * LANES;
 
-    /// Smaller clouds take the passes over every point: ordering them
-    /// costs more than skipping saves.
-    pub(super) const MIN_POINTS: usize = 4 * BLOCK;
+    /// Fewer picks take the passes over every point: ordering the points
+    /// costs more than skipping blocks saves (`docs/tuning.md`).
+    pub(super) const MIN_PICKS: usize = 256;
 
     /// A bounding box's squared distance to a pick, shrunk by this share:
     /// far more than the rounding of an f32 squared distance.
