@@ -77,6 +77,11 @@ fn bench_maps(c: &mut Criterion) {
     fps.bench_function(format!("{}_to_512", visible.len()), |b| {
         b.iter(|| farthest_point_sample(&visible, 512))
     });
+    // Fewer picks than blocks pay for (the second search's voting points):
+    // a pass over every point for each pick.
+    fps.bench_function(format!("{}_to_160", visible.len()), |b| {
+        b.iter(|| farthest_point_sample(&visible, 160))
+    });
     fps.finish();
 
     // The encoder's neighbour groups (128 centres × 16 neighbours) of one map,

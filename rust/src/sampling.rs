@@ -209,15 +209,7 @@ mod x86 {
         // The 16 points from `i` lowered, and the lanes' running largest
         // distance and its index `at` updated (the first index on ties).
         let lower = |i: usize, best: &mut __m512, best_at: &mut __m512i, at: __m512i| {
-            let dx = _mm512_sub_ps(_mm512_loadu_ps(px.add(i)), cx);
-            let dy = _mm512_sub_ps(_mm512_loadu_ps(py.add(i)), cy);
-            let dz = _mm512_sub_ps(_mm512_loadu_ps(pz.add(i)), cz);
-            let d = _mm512_add_ps(
-                _mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)),
-                _mm512_mul_ps(dz, dz),
-            );
-            let lowered = _mm512_min_ps(d, _mm512_loadu_ps(pd.add(i)));
-            _mm512_storeu_ps(pd.add(i), lowered);
+            let lowered = lower_16([px, py, pz], pd, i, [cx, cy, cz]);
             let better = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(lowered, *best);
             *best = _mm512_mask_blend_ps(better, *best, lowered);
             *best_at = _mm512_mask_blend_epi32(better, *best_at, at);
@@ -254,6 +246,29 @@ mod x86 {
         _mm512_storeu_ps(values.as_mut_ptr(), best);
         _mm512_storeu_si512(at.as_mut_ptr() as *mut __m512i, best_at);
         (values, at)
+    }
+
+    /// The 16 points from `i` (`points`: their x, y and z rows) lowered
+    /// with their squared distance to a pick (`c`: its x, y and z in every
+    /// lane), stored back into `min_sq` and returned: the step both
+    /// AVX-512 samplers take, the portable kernel's operations in order.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn lower_16(
+        points: [*const f32; 3],
+        min_sq: *mut f32,
+        i: usize,
+        c: [__m512; 3],
+    ) -> __m512 {
+        let [dx, dy, dz] =
+            std::array::from_fn(|a| _mm512_sub_ps(_mm512_loadu_ps(points[a].add(i)), c[a]));
+        let d = _mm512_add_ps(
+            _mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)),
+            _mm512_mul_ps(dz, dz),
+        );
+        let lowered = _mm512_min_ps(d, _mm512_loadu_ps(min_sq.add(i)));
+        _mm512_storeu_ps(min_sq.add(i), lowered);
+        lowered
     }
 
     #[target_feature(enable = "avx2")]
@@ -320,6 +335,7 @@ mod x86 {
 /// few blocks. Ties still go to the lowest input index.
 #[cfg(target_arch = "x86_64")]
 mod blocked {
+    use super::x86::lower_16;
     use super::{centroid, LANES};
     use crate::index::bounds;
     use crate::Point3;
@@ -470,29 +486,11 @@ mod blocked {
     /// returns the largest.
     #[target_feature(enable = "avx512f")]
     unsafe fn lower_block(slots: &Slots, min_sq: &mut [f32], b: usize, c: Point3) -> f32 {
-        let (cx, cy, cz) = (
-            _mm512_set1_ps(c[0]),
-            _mm512_set1_ps(c[1]),
-            _mm512_set1_ps(c[2]),
-        );
+        let c = c.map(|v| _mm512_set1_ps(v));
+        let points = [slots.xs.as_ptr(), slots.ys.as_ptr(), slots.zs.as_ptr()];
         let mut best = _mm512_set1_ps(f32::NEG_INFINITY);
-        let (px, py, pz, pd) = (
-            slots.xs.as_ptr(),
-            slots.ys.as_ptr(),
-            slots.zs.as_ptr(),
-            min_sq.as_mut_ptr(),
-        );
         for i in (b * BLOCK..(b + 1) * BLOCK).step_by(LANES) {
-            let dx = _mm512_sub_ps(_mm512_loadu_ps(px.add(i)), cx);
-            let dy = _mm512_sub_ps(_mm512_loadu_ps(py.add(i)), cy);
-            let dz = _mm512_sub_ps(_mm512_loadu_ps(pz.add(i)), cz);
-            let d = _mm512_add_ps(
-                _mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)),
-                _mm512_mul_ps(dz, dz),
-            );
-            let lowered = _mm512_min_ps(d, _mm512_loadu_ps(pd.add(i)));
-            _mm512_storeu_ps(pd.add(i), lowered);
-            best = _mm512_max_ps(best, lowered);
+            best = _mm512_max_ps(best, lower_16(points, min_sq.as_mut_ptr(), i, c));
         }
         _mm512_reduce_max_ps(best)
     }
