@@ -337,7 +337,7 @@ mod x86 {
 mod blocked {
     use super::x86::lower_16;
     use super::{centroid, LANES};
-    use crate::index::bounds;
+    use crate::index::{bounds, counting_sort};
     use crate::Point3;
     use std::arch::x86_64::*;
 
@@ -501,7 +501,7 @@ mod blocked {
 
     /// Input indices of `points` in Morton order over their bounding box
     /// ([`BITS`] bits an axis; points with the same code in input order),
-    /// sorted by two passes of a counting sort.
+    /// sorted by two passes of [`counting_sort`].
     #[inline(always)]
     fn morton_order(points: &[Point3]) -> Vec<u32> {
         let (lo, hi) = bounds(points);
@@ -516,30 +516,18 @@ mod blocked {
         // A NaN coordinate is cell 0 (max returns the other operand).
         let cell =
             |p: &Point3, a: usize| spread(((p[a] - lo[a]) * scale[a]).max(0.0).min(cells) as u32);
-        let codes: Vec<u32> = points
+        let codes: Vec<usize> = points
             .iter()
-            .map(|p| cell(p, 0) | cell(p, 1) << 1 | cell(p, 2) << 2)
+            .map(|p| (cell(p, 0) | cell(p, 1) << 1 | cell(p, 2) << 2) as usize)
             .collect();
-        let mut order: Vec<u32> = (0..points.len() as u32).collect();
-        let mut sorted = vec![0u32; points.len()];
+        // Least significant digit first: the second pass keeps the first's
+        // order within each of its buckets.
         const DIGIT: u32 = (3 * BITS).div_ceil(2);
-        for shift in [0, DIGIT] {
-            let digit = |i: u32| ((codes[i as usize] >> shift) & ((1 << DIGIT) - 1)) as usize;
-            let mut starts = [0usize; 1 << DIGIT];
-            for &i in &order {
-                starts[digit(i)] += 1;
-            }
-            let mut total = 0;
-            for start in starts.iter_mut() {
-                (*start, total) = (total, total + *start);
-            }
-            for &i in &order {
-                sorted[starts[digit(i)]] = i;
-                starts[digit(i)] += 1;
-            }
-            std::mem::swap(&mut order, &mut sorted);
-        }
-        order
+        let low: Vec<usize> = codes.iter().map(|c| c & ((1 << DIGIT) - 1)).collect();
+        let (by_low, _) = counting_sort(&low, 1 << DIGIT);
+        let high: Vec<usize> = by_low.iter().map(|&i| codes[i as usize] >> DIGIT).collect();
+        let (by_high, _) = counting_sort(&high, 1 << DIGIT);
+        by_high.into_iter().map(|k| by_low[k as usize]).collect()
     }
 
     /// The low [`BITS`] bits of `v`, two zero bits after each.
