@@ -267,3 +267,21 @@ def test_work_shared_between_threads_comes_back_in_order_and_raises_when_no_thre
     with pytest.raises(ValueError, match="object 2"):
         each(work, 6, 2)
     assert in_work[0] == 0  # no thread is left inside the work
+
+
+def test_threads_sharing_work_keep_their_core_work_to_themselves_until_done():
+    from edgepose import _core
+    from edgepose.workers import each
+
+    def kept(_: int) -> bool:
+        keep = _core.keep_work_on_this_thread(True)  # reads the setting (and sets it again)
+        _core.keep_work_on_this_thread(keep)
+        return keep
+
+    assert each(kept, 6, 2) == [True] * 6
+    assert each(kept, 6, 1) == [False] * 6
+    assert each(kept, 1, 2) == [False]  # one job: the core's threads are free
+    assert _core.keep_work_on_this_thread(False) is False  # this thread is back as it was
+    with pytest.raises(ValueError, match="object 0"):
+        each(lambda i: (_ for _ in ()).throw(ValueError(f"object {i}")), 2, 2)
+    assert _core.keep_work_on_this_thread(False) is False

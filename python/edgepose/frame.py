@@ -8,7 +8,8 @@ It does what :func:`edgepose.estimate` does per object given the frame
 the scene around each object too), but shares the frame's work: the depth
 image is checked once, and the objects are estimated in parallel threads
 (the Rust core and onnxruntime release the GIL), each thread taking the
-next object when done with its last. The poses equal
+next object when done with its last and keeping that object's work in the
+core to itself. The poses equal
 :func:`edgepose.estimate`'s on each object's masked cloud and the frame.
 
 Units are metres; camera frames follow OpenCV; poses are ``T_cam_obj``.
@@ -32,16 +33,6 @@ from edgepose.settings import DEFAULT_SETTINGS, EstimateSettings, usable_cores
 from edgepose.stages import query_of_cleaned
 from edgepose.track import Tracker
 from edgepose.workers import each
-
-#: Objects searched in parallel already share the cores: each object's
-#: candidates are aligned and scored, and its coarse ICPs run, one after
-#: another, and its flip rival is found after its polish, not on another
-#: core beside them.
-ONE_CORE_EACH = {
-    "refine.flip_rival_beside_polish": False,
-    "refine.coarse_icp_on_two_cores": False,
-    "retrieve.candidates_on_two_cores": False,
-}
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,7 +84,6 @@ def estimate_many(
     workers = max(1, min(workers or usable_cores(), len(objects)))
     depth, K = checked_depth(depth, K, depth_scale)
     masks, codebooks = _checked_objects(objects, depth.shape, encoder, settings)
-    search_settings = settings.with_(**ONE_CORE_EACH) if workers > 1 else settings
     frame = (depth, K, depth_scale)
 
     def estimated(i: int) -> tuple[Pose | None, EdgePoseError | None]:
@@ -104,7 +94,7 @@ def estimate_many(
         except EdgePoseError as e:
             return None, e
         laps("prepare_query")
-        return pose_from_query(query, codebooks[i], encoder, refine, search_settings, laps), None
+        return pose_from_query(query, codebooks[i], encoder, refine, settings, laps), None
 
     results = each(estimated, len(objects), workers)
     poses, errors = zip(*results) if results else ((), ())

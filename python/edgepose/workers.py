@@ -1,7 +1,8 @@
 """Threads that share a list of independent jobs: the objects of
 :func:`edgepose.estimate_many` and :func:`edgepose.track_many`, the chunks
 of a batch the encoder runs (:meth:`edgepose.Encoder.encode`). The jobs
-release the GIL (the Rust core, onnxruntime), so the threads use the cores.
+release the GIL (the Rust core, onnxruntime), so the threads use the cores;
+each job's own work in the core stays on its thread.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
+from edgepose import _core
+
 T = TypeVar("T")
 
 
@@ -22,13 +25,23 @@ def each(work: Callable[[int], T], count: int, workers: int) -> list[T]:
     its last (the work releases the GIL in the core). This thread starts at
     once, and a pool thread that has not woken by the time the work is done
     is not waited for: waking one can take longer than a tracked object.
-    The first exception is raised once every thread is done."""
+    The first exception is raised once every thread is done.
+
+    With more than one thread, each keeps the core's parallel loops and
+    handed-over searches of its jobs to itself: the threads already use the
+    cores, and sharing the core's threads too would only make them wait on
+    one another (the results are the same)."""
     results: list[Any] = [None] * count
     indices = itertools.count()  # next() is atomic: each i is taken once
+    alone = min(workers, count) > 1
 
     def take() -> None:
-        while (i := next(indices)) < count:
-            results[i] = work(i)
+        before = _core.keep_work_on_this_thread(alone)
+        try:
+            while (i := next(indices)) < count:
+                results[i] = work(i)
+        finally:
+            _core.keep_work_on_this_thread(before)
 
     helpers = [pool(workers - 1).submit(take) for _ in range(min(workers, count) - 1)]
     try:

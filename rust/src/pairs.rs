@@ -205,77 +205,84 @@ fn vote<V: Votes>(
     let references: Vec<usize> = (0..scene.len())
         .step_by(settings.reference_stride.max(1))
         .collect();
-    // Reference points vote on their own: in parallel, in order.
-    threads::install(|| {
+    // Reference points vote on their own: in parallel (each pool thread
+    // with an accumulator of its own), in order.
+    let accumulator = || {
+        (
+            vec![V::default(); m * ROTATION_BINS],
+            Vec::with_capacity(scene.len()),
+        )
+    };
+    let votes_of = |(accumulator, runs): &mut (Vec<V>, Vec<(u32, u32, usize)>), r: &usize| {
+        let r = *r;
+        accumulator.fill(V::default());
+        let to_x = rotation_to_x(&normals[r]);
+        // Where each scene pair's model pairs lie in the table,
+        // all read before any votes: the table's cache misses
+        // overlap instead of waiting one after another.
+        runs.clear();
+        for i in 0..scene.len() {
+            if i == r || (scene[i] - scene[r]).norm() > max_distance {
+                continue;
+            }
+            let Some(key) = feature_key(
+                &scene[r],
+                &normals[r],
+                &scene[i],
+                &normals[i],
+                table.distance_step,
+            ) else {
+                continue;
+            };
+            let (first, end) = (table.starts[key as usize], table.starts[key as usize + 1]);
+            let scene_turn = turn_bin_about_x(&to_x, &scene[r], &scene[i]) as usize;
+            runs.push((first, end, scene_turn));
+        }
+        for &(first, end, scene_turn) in runs.iter() {
+            for &(model_ref, model_turn) in &table.entries[first as usize..end as usize] {
+                // The turn taking the model pair onto the scene pair, in bins.
+                let mut bin = scene_turn + ROTATION_BINS - model_turn as usize;
+                if bin >= ROTATION_BINS {
+                    bin -= ROTATION_BINS;
+                }
+                accumulator[model_ref as usize * ROTATION_BINS + bin] += V::ONE;
+            }
+        }
+        best_cells(accumulator, settings.peaks_per_reference)
+            .into_iter()
+            .map(|(cell, votes)| {
+                let (model_ref, bin) = (cell / ROTATION_BINS, cell % ROTATION_BINS);
+                let turn = bin as f64 * std::f64::consts::TAU / ROTATION_BINS as f64;
+                // s = to_x_sᵀ · Rx(turn) · to_x_m · (m − m_ref) + s_ref
+                let rotation = to_x.inverse()
+                    * Rotation3::from_axis_angle(&Vector3::x_axis(), turn)
+                    * table.to_x[model_ref];
+                let translation = scene[r] - rotation * table.points[model_ref];
+                VotedPose {
+                    pose: Pose {
+                        rotation: *rotation.matrix(),
+                        translation,
+                    },
+                    votes: votes.into(),
+                }
+            })
+            .collect::<Vec<_>>()
+    };
+    if threads::on_this_thread() {
+        let mut state = accumulator();
         references
-            .par_iter()
-            .map_init(
-                || {
-                    (
-                        vec![V::default(); m * ROTATION_BINS],
-                        Vec::with_capacity(scene.len()),
-                    )
-                },
-                |(accumulator, runs), &r| {
-                    accumulator.fill(V::default());
-                    let to_x = rotation_to_x(&normals[r]);
-                    // Where each scene pair's model pairs lie in the table,
-                    // all read before any votes: the table's cache misses
-                    // overlap instead of waiting one after another.
-                    runs.clear();
-                    for i in 0..scene.len() {
-                        if i == r || (scene[i] - scene[r]).norm() > max_distance {
-                            continue;
-                        }
-                        let Some(key) = feature_key(
-                            &scene[r],
-                            &normals[r],
-                            &scene[i],
-                            &normals[i],
-                            table.distance_step,
-                        ) else {
-                            continue;
-                        };
-                        let (first, end) =
-                            (table.starts[key as usize], table.starts[key as usize + 1]);
-                        let scene_turn = turn_bin_about_x(&to_x, &scene[r], &scene[i]) as usize;
-                        runs.push((first, end, scene_turn));
-                    }
-                    for &(first, end, scene_turn) in runs.iter() {
-                        for &(model_ref, model_turn) in &table.entries[first as usize..end as usize]
-                        {
-                            // The turn taking the model pair onto the scene pair, in bins.
-                            let mut bin = scene_turn + ROTATION_BINS - model_turn as usize;
-                            if bin >= ROTATION_BINS {
-                                bin -= ROTATION_BINS;
-                            }
-                            accumulator[model_ref as usize * ROTATION_BINS + bin] += V::ONE;
-                        }
-                    }
-                    best_cells(accumulator, settings.peaks_per_reference)
-                        .into_iter()
-                        .map(|(cell, votes)| {
-                            let (model_ref, bin) = (cell / ROTATION_BINS, cell % ROTATION_BINS);
-                            let turn = bin as f64 * std::f64::consts::TAU / ROTATION_BINS as f64;
-                            // s = to_x_sᵀ · Rx(turn) · to_x_m · (m − m_ref) + s_ref
-                            let rotation = to_x.inverse()
-                                * Rotation3::from_axis_angle(&Vector3::x_axis(), turn)
-                                * table.to_x[model_ref];
-                            let translation = scene[r] - rotation * table.points[model_ref];
-                            VotedPose {
-                                pose: Pose {
-                                    rotation: *rotation.matrix(),
-                                    translation,
-                                },
-                                votes: votes.into(),
-                            }
-                        })
-                        .collect::<Vec<_>>()
-                },
-            )
-            .flatten()
+            .iter()
+            .flat_map(|r| votes_of(&mut state, r))
             .collect()
-    })
+    } else {
+        threads::install(|| {
+            references
+                .par_iter()
+                .map_init(accumulator, votes_of)
+                .flatten()
+                .collect()
+        })
+    }
 }
 
 /// The accumulator's `count` best cells with at least one vote, (cell,

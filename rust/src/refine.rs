@@ -5,7 +5,6 @@
 use std::sync::Arc;
 
 use nalgebra::{Matrix6, Rotation3, Vector3, Vector6};
-use rayon::prelude::*;
 
 use crate::index::{as_queries, ModelIndex, Pose};
 use crate::threads;
@@ -72,7 +71,7 @@ impl ModelIndex {
             self.refine_until(cloud, *start, max_iterations, max_distance, converged)
         };
         if starts.len() >= PARALLEL_STARTS {
-            threads::install(|| starts.par_iter().map(icp).collect())
+            threads::map(starts, 1, icp)
         } else if two_cores && starts.len() >= 2 {
             // The loop owns its inputs: the index shared, the cloud (a few
             // hundred points) and the starts copied.

@@ -26,7 +26,6 @@
 use std::sync::Arc;
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
-use rayon::prelude::*;
 
 use crate::index::{as_queries, ModelIndex, Pose};
 use crate::query::Pinhole;
@@ -477,7 +476,7 @@ const PARALLEL_FROM: usize = 64;
 /// more (each pose's result is its own, so the results are the same).
 fn each_pose<T: Send>(poses: &[Pose], f: impl Fn(&Pose) -> T + Sync + Send) -> Vec<T> {
     if poses.len() >= PARALLEL_FROM {
-        threads::install(|| poses.par_iter().with_min_len(16).map(f).collect())
+        threads::map(poses, 16, f)
     } else {
         poses.iter().map(f).collect()
     }

@@ -1,5 +1,6 @@
 //! The worker threads of the core's parallel loops: one rayon pool per
-//! process.
+//! process; and the threads that keep their loops to themselves
+//! ([`keep_on_this_thread`]).
 //!
 //! Not rayon's global pool: a process forked after using it (Python's
 //! `multiprocessing` on Linux, a robot stack's worker processes) inherits
@@ -8,11 +9,13 @@
 //! child (a `pthread_atfork` handler) or one another process started (its
 //! id differs), and starts one of its own there.
 
+use std::cell::Cell;
 use std::panic::{catch_unwind, resume_unwind, AssertUnwindSafe};
 use std::ptr;
 use std::sync::atomic::{AtomicBool, AtomicPtr, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
+use rayon::prelude::*;
 use rayon::{ThreadPool, ThreadPoolBuilder};
 
 /// A pool and the process that started it.
@@ -107,6 +110,42 @@ pub fn install<R: Send>(op: impl FnOnce() -> R + Send) -> R {
     }
 }
 
+thread_local! {
+    /// Whether this thread keeps its work to itself: see [`keep_on_this_thread`].
+    static ON_THIS_THREAD: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Sets whether the parallel loops ([`map`]) and handed-over jobs
+/// ([`hand_over`], [`on_two_cores`]) started from this thread run on it
+/// alone; returns the previous setting. For a thread that shares a
+/// caller's jobs with as many threads as there are cores (the objects of
+/// `estimate_many`): the cores are busy already, and handing work to the
+/// pool would only make the threads wait on one another. The results are
+/// the same either way.
+pub fn keep_on_this_thread(keep: bool) -> bool {
+    ON_THIS_THREAD.replace(keep)
+}
+
+/// Whether this thread keeps its work to itself ([`keep_on_this_thread`]).
+pub fn on_this_thread() -> bool {
+    ON_THIS_THREAD.get()
+}
+
+/// `f` of each of `items`, in order: in parallel in the pool (at least
+/// `min_len` items a job), or on this thread when it keeps its work to
+/// itself ([`keep_on_this_thread`]).
+pub fn map<I: Sync, T: Send>(
+    items: &[I],
+    min_len: usize,
+    f: impl Fn(&I) -> T + Sync + Send,
+) -> Vec<T> {
+    if on_this_thread() {
+        items.iter().map(f).collect()
+    } else {
+        install(|| items.par_iter().with_min_len(min_len).map(f).collect())
+    }
+}
+
 /// A job [`hand_over`] gave one of the pool's threads, and its result.
 /// The caller asks for the result with [`Handed::take`]: it waits while a
 /// worker runs the job, and runs the job itself when no worker has started
@@ -130,12 +169,16 @@ enum Slot<T> {
 
 /// `job` on one of this process's pool's threads, starting now, while the
 /// caller goes on; its result comes from [`Handed::take`]. With a pool of
-/// one thread, or from a pool's own thread (whose pool may be busy with the
-/// caller's own loops), no worker is asked: `take` runs it.
+/// one thread, from a pool's own thread (whose pool may be busy with the
+/// caller's own loops) or from one that keeps its work to itself
+/// ([`keep_on_this_thread`]), no worker is asked: `take` runs it.
 pub fn hand_over<T: Send + 'static>(job: impl FnOnce() -> T + Send + 'static) -> Handed<T> {
     let handed = later(job);
     let pool = pool();
-    if rayon::current_thread_index().is_none() && pool.current_num_threads() >= 2 {
+    if rayon::current_thread_index().is_none()
+        && pool.current_num_threads() >= 2
+        && !on_this_thread()
+    {
         let slot = Arc::clone(&handed.slot);
         pool.spawn(move || {
             let (lock, done) = &*slot;
@@ -262,7 +305,6 @@ impl<T> Drop for Handed<T> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use rayon::prelude::*;
 
     #[test]
     fn loops_run_on_the_process_pool() {
@@ -277,6 +319,34 @@ pub(crate) mod tests {
             "{names:?}"
         );
         assert!(std::ptr::eq(pool(), pool()));
+    }
+
+    #[test]
+    fn a_thread_that_keeps_its_work_runs_its_loops_and_handed_jobs_itself() {
+        let here = std::thread::current().id();
+        let threads = |items: &[u64]| {
+            map(items, 1, |_| {
+                std::thread::sleep(std::time::Duration::from_micros(20));
+                std::thread::current().id()
+            })
+        };
+        let items: Vec<u64> = (0..64).collect();
+        assert!(!on_this_thread());
+        assert!(threads(&items).iter().all(|&id| id != here));
+        assert!(!keep_on_this_thread(true));
+        assert!(threads(&items).iter().all(|&id| id == here));
+        let handed = hand_over(|| std::thread::current().id());
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        assert_eq!(handed.take(), here);
+        assert_eq!(
+            on_two_cores(vec![1, 2, 3], |_| std::thread::current().id()),
+            [here; 3]
+        );
+        assert!(keep_on_this_thread(false));
+        assert_eq!(
+            map(&items, 4, |i| i * i),
+            items.iter().map(|i| i * i).collect::<Vec<_>>()
+        );
     }
 
     #[test]

@@ -49,6 +49,17 @@ fn guarded<T>(body: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
     })
 }
 
+/// Sets whether the core's parallel loops and handed-over searches started
+/// from the calling thread run on it alone, and returns the previous
+/// setting: `True` for a thread that shares a frame's objects with one
+/// thread per core (`edgepose.workers.each`), where handing work to the
+/// core's own threads only makes the threads wait on one another. The
+/// results are the same either way.
+#[pyfunction]
+fn keep_work_on_this_thread(keep: bool) -> bool {
+    crate::threads::keep_on_this_thread(keep)
+}
+
 /// TEST HOOK, not API, built only with the `test-hooks` feature (`make
 /// build`, which the tests use; never the wheel): panics on purpose so the
 /// tests can check that a Rust panic reaches Python as `InternalError`.
@@ -92,6 +103,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<index::PyTrackedFit>()?;
     m.add_class::<confidence::PyConfidenceCurves>()?;
     m.add_function(wrap_pyfunction!(model::compute_maps, m)?)?;
+    m.add_function(wrap_pyfunction!(keep_work_on_this_thread, m)?)?;
     functions::register(m)?;
     #[cfg(feature = "test-hooks")]
     m.add_function(wrap_pyfunction!(_panic_for_tests, m)?)?;
