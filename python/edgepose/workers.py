@@ -33,10 +33,10 @@ def each(work: Callable[[int], T], count: int, workers: int) -> list[T]:
     one another (the results are the same)."""
     results: list[Any] = [None] * count
     indices = itertools.count()  # next() is atomic: each i is taken once
-    alone = min(workers, count) > 1
+    sharing = min(workers, count) > 1
 
     def take() -> None:
-        before = _core.keep_work_on_this_thread(alone)
+        before = _core.keep_work_on_this_thread(sharing)
         try:
             while (i := next(indices)) < count:
                 results[i] = work(i)
